@@ -1,0 +1,35 @@
+# The two commands a newcomer types: `make demo` and `make test`.
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+
+.PHONY: demo test test64 test32 bench clean
+
+$(PY):
+	$(PYTHON) -m venv $(VENV)
+
+$(STAMP): $(PY) pyproject.toml
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e ".[test,bench]"
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(PY) examples/demo.py
+
+# The whole suite, once in float64 and once in float32.
+test: $(STAMP)
+	JAX_ENABLE_X64=1 $(PY) -m pytest
+	JAX_ENABLE_X64=0 $(PY) -m pytest
+
+test64: $(STAMP)
+	JAX_ENABLE_X64=1 $(PY) -m pytest
+
+test32: $(STAMP)
+	JAX_ENABLE_X64=0 $(PY) -m pytest
+
+bench: $(STAMP)
+	$(PY) benchmarks/ops.py --write docs/benchmarks.md
+
+clean:
+	rm -rf $(VENV) .pytest_cache .hypothesis

@@ -1,0 +1,147 @@
+"""Argument validation at trace time.
+
+Shapes and dtypes are static under ``jit``, so every check here runs once per
+trace and costs nothing at run time. Each error names the argument and the shape
+it expected, so a user who passes an ``(n, 3)`` vector where an ``(n, 4)``
+quaternion belongs is told so before anything is computed.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax.numpy as jnp
+from jax import Array
+
+
+def as_float_array(x: Any, name: str) -> Array:
+    """Convert ``x`` to a JAX array and require a floating dtype.
+
+    Python floats and lists are accepted and become JAX's default float dtype.
+    Integer, boolean and complex arrays raise ``TypeError``: silently promoting
+    integer quaternions hides bugs (and the gradients are meaningless).
+    """
+    if isinstance(x, (float, int)) and not isinstance(x, bool):
+        return jnp.asarray(float(x))
+    if isinstance(x, (list, tuple)):
+        x = jnp.asarray(x)
+        if not jnp.issubdtype(x.dtype, jnp.floating):
+            x = x.astype(jnp.asarray(0.0).dtype)
+        return x
+    arr = jnp.asarray(x)
+    if not jnp.issubdtype(arr.dtype, jnp.floating):
+        raise TypeError(
+            f"argument '{name}' must have a floating dtype "
+            f"(float16, bfloat16, float32 or float64), got {arr.dtype}"
+        )
+    return arr
+
+
+def _check_trailing(arr: Array, name: str, trailing: tuple[int, ...], what: str) -> Array:
+    n = len(trailing)
+    if arr.ndim < n or tuple(arr.shape[arr.ndim - n :]) != trailing:
+        expected = "(..., " + ", ".join(str(t) for t in trailing) + ")"
+        raise ValueError(
+            f"argument '{name}' must be {what} shaped {expected}, got shape {tuple(arr.shape)}"
+        )
+    return arr
+
+
+def quat(q: Any, name: str = "q") -> Array:
+    """Validate a quaternion argument: floating, shaped ``(..., 4)``."""
+    return _check_trailing(as_float_array(q, name), name, (4,), "a quaternion array")
+
+
+def vec3(v: Any, name: str = "v") -> Array:
+    """Validate a 3-vector argument: floating, shaped ``(..., 3)``."""
+    return _check_trailing(as_float_array(v, name), name, (3,), "a 3-vector array")
+
+
+def mat3(m: Any, name: str = "m") -> Array:
+    """Validate a 3x3 matrix argument: floating, shaped ``(..., 3, 3)``."""
+    return _check_trailing(as_float_array(m, name), name, (3, 3), "a matrix array")
+
+
+def scalar_like(x: Any, name: str) -> Array:
+    """Validate a batch of scalars (any shape, floating)."""
+    return as_float_array(x, name)
+
+
+def common_dtype(*arrays: Array):
+    """The dtype JAX's promotion rules give to ``arrays`` together."""
+    return jnp.result_type(*arrays)
+
+
+def broadcast_quat_and_scalar(q: Array, s: Array, q_name: str, s_name: str) -> tuple[Array, Array]:
+    """Broadcast ``q`` ``(..., 4)`` against a batch of scalars ``s`` ``(...)``.
+
+    Done explicitly so the library works under ``jax_numpy_rank_promotion="raise"``.
+    """
+    try:
+        batch = jnp.broadcast_shapes(q.shape[:-1], s.shape)
+    except ValueError:
+        raise ValueError(
+            f"batch shapes of '{q_name}' {tuple(q.shape)} (last axis 4) and "
+            f"'{s_name}' {tuple(s.shape)} do not broadcast"
+        ) from None
+    dtype = common_dtype(q, s)
+    return (
+        jnp.broadcast_to(q, batch + (q.shape[-1],)).astype(dtype),
+        jnp.broadcast_to(s, batch).astype(dtype),
+    )
+
+
+def broadcast_batch(arrays: list[Array], names: list[str], core_ndims: list[int]) -> list[Array]:
+    """Broadcast the leading (batch) axes of several arrays, keeping their core axes.
+
+    ``core_ndims[i]`` is the number of trailing axes of ``arrays[i]`` that are not
+    batch axes (1 for a quaternion, 2 for a matrix, 0 for a scalar). The result
+    arrays share one dtype and one batch shape.
+    """
+    batches = [a.shape[: a.ndim - c] for a, c in zip(arrays, core_ndims)]
+    try:
+        batch = jnp.broadcast_shapes(*batches)
+    except ValueError:
+        desc = ", ".join(f"'{n}' {tuple(a.shape)}" for n, a in zip(names, arrays))
+        raise ValueError(f"batch shapes do not broadcast: {desc}") from None
+    dtype = common_dtype(*arrays)
+    return [
+        jnp.broadcast_to(a, batch + a.shape[a.ndim - c :]).astype(dtype)
+        for a, c in zip(arrays, core_ndims)
+    ]
+
+
+EULER_SEQUENCES = tuple(
+    s
+    for case in (str.lower, str.upper)
+    for s in (
+        case(a + b + c)
+        for a in "xyz"
+        for b in "xyz"
+        for c in "xyz"
+        if a != b and b != c
+    )
+)
+
+
+def euler_seq(seq: Any) -> str:
+    """Validate an Euler axis sequence as scipy spells it.
+
+    Lower case (``"xyz"``) is extrinsic (rotations about the fixed axes),
+    upper case (``"XYZ"``) intrinsic (about the moving axes). Consecutive axes
+    must differ; twelve sequences in each case.
+    """
+    if not isinstance(seq, str) or seq not in EULER_SEQUENCES:
+        raise ValueError(
+            f"argument 'seq' must be one of the 24 Euler sequences: three of 'xyz' "
+            f"(extrinsic) or three of 'XYZ' (intrinsic), no two consecutive axes "
+            f"equal, e.g. 'xyz', 'ZYX', 'zxz'; got {seq!r}"
+        )
+    return seq
+
+
+def frame(frame: Any) -> str:
+    """Validate a frame argument: ``"body"`` or ``"space"``."""
+    if frame not in ("body", "space"):
+        raise ValueError(f"argument 'frame' must be 'body' or 'space', got {frame!r}")
+    return frame

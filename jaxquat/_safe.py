@@ -1,0 +1,100 @@
+"""The NaN-safe idiom, written once.
+
+Functions such as ``sin(theta)/theta`` are smooth at ``theta = 0`` but their
+direct formulas divide zero by zero there, and ``jnp.where`` alone does not save
+the gradient (the untaken branch still propagates ``0 * nan = nan``). Every helper
+here therefore
+
+1. takes the *square* of the angle, ``s = theta**2``, which is a polynomial in the
+   inputs and so has no singular derivative at zero (``|v|`` has one),
+2. evaluates a Taylor polynomial in ``s`` on a small-argument operand and the
+   direct formula on a *safe* operand that never enters the singular region,
+3. selects between the two results with ``jnp.where``.
+
+Both branches then have finite derivatives of every order, and the Taylor
+polynomial carries enough terms that its truncation error is below float64
+rounding at the switch point, so values, gradients and Hessians are right on
+both sides of the switch.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jax import Array
+
+# Switch points (in s = theta**2). For sin(x)/x and cos(x) the first omitted
+# term at s = 0.02 is s**5/11! ~ 8e-17; for atan(x)/x it is s**6/13 ~ 8e-20 at
+# s = 1e-3. The direct branch loses about eps/s relative accuracy in its first
+# derivative, i.e. ~1e-14 in float64 at these switch points.
+_TRIG_SWITCH = 0.02
+_ATAN_SWITCH = 1e-3
+
+_SINC = (1.0, -1.0 / 6.0, 1.0 / 120.0, -1.0 / 5040.0, 1.0 / 362880.0)
+_COS = (1.0, -1.0 / 2.0, 1.0 / 24.0, -1.0 / 720.0, 1.0 / 40320.0)
+_ATAN = (1.0, -1.0 / 3.0, 1.0 / 5.0, -1.0 / 7.0, 1.0 / 9.0, -1.0 / 11.0)
+
+
+def _horner(s: Array, coeffs: tuple[float, ...]) -> Array:
+    acc = jnp.full_like(s, coeffs[-1])
+    for c in coeffs[-2::-1]:
+        acc = acc * s + c
+    return acc
+
+
+def _series_or_direct(s: Array, coeffs, direct, switch: float) -> Array:
+    small = s < switch
+    taylor = _horner(jnp.where(small, s, 0.0), coeffs)
+    return jnp.where(small, taylor, direct(jnp.where(small, switch, s)))
+
+
+def sinc_of_sq(s: Array) -> Array:
+    """``sin(x)/x`` as a function of ``s = x**2`` (smooth at 0)."""
+    return _series_or_direct(s, _SINC, lambda u: jnp.sin(jnp.sqrt(u)) / jnp.sqrt(u), _TRIG_SWITCH)
+
+
+def cos_of_sq(s: Array) -> Array:
+    """``cos(x)`` as a function of ``s = x**2`` (smooth at 0)."""
+    return _series_or_direct(s, _COS, lambda u: jnp.cos(jnp.sqrt(u)), _TRIG_SWITCH)
+
+
+def atan2_over_n(nsq: Array, w: Array) -> Array:
+    """``atan2(n, w) / n`` with ``n = sqrt(nsq) >= 0``, smooth as ``n -> 0`` for ``w > 0``.
+
+    For ``w > 0`` and small ``n/w`` it is ``(1/w) * atan(x)/x`` with ``x = n/w``,
+    an even series in ``x``. For ``w <= 0`` the function really is singular at
+    ``n = 0`` (the quaternion is real and negative); there the result is finite
+    but meaningless and callers must handle that case themselves.
+    """
+    small = (w > 0) & (nsq < _ATAN_SWITCH * w * w)
+    w_safe = jnp.where(small, w, 1.0)
+    x2 = jnp.where(small, nsq / (w_safe * w_safe), 0.0)
+    taylor = _horner(x2, _ATAN) / w_safe
+    n_safe = jnp.sqrt(jnp.where(small | (nsq <= 0), 1.0, nsq))
+    return jnp.where(small, taylor, jnp.arctan2(n_safe, w) / n_safe)
+
+
+def norm_sq(x: Array, axis: int = -1) -> Array:
+    """Sum of squares along ``axis``."""
+    return jnp.sum(x * x, axis=axis)
+
+
+def safe_sqrt(s: Array) -> Array:
+    """``sqrt(s)`` whose derivative at ``s = 0`` is 0 (a subgradient of ``|v|``) instead of inf."""
+    pos = s > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, s, 1.0)), 0.0)
+
+
+def safe_norm(x: Array, axis: int = -1) -> Array:
+    """Euclidean norm with gradient 0 (a valid subgradient) at the zero vector."""
+    return safe_sqrt(norm_sq(x, axis))
+
+
+def safe_atan2(y: Array, x: Array) -> Array:
+    """``atan2(y, x)``, returning 0 with zero gradient at ``(0, 0)`` instead of NaN."""
+    zero = (x == 0) & (y == 0)
+    return jnp.where(zero, 0.0, jnp.arctan2(y, jnp.where(zero, 1.0, x)))
+
+
+def safe_hypot(x: Array, y: Array) -> Array:
+    """``hypot(x, y)`` with gradient 0 at ``(0, 0)``."""
+    return safe_sqrt(x * x + y * y)

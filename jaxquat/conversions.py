@@ -1,0 +1,233 @@
+"""Conversions between unit quaternions and the other rotation parametrisations.
+
+Rotation matrices (act on column vectors, ``v' = R v``), rotation vectors,
+axis-angle pairs and modified Rodrigues parameters (MRP). Euler angles live in
+:mod:`jaxquat.euler`.
+
+Source documents: Tasora (2016) [T], Chou (1992) [C], Schwab (2002) [S].
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jax import Array
+from jaxtyping import Float
+
+from . import _checks, _safe
+from .algebra import _canonicalize
+
+__all__ = [
+    "to_matrix",
+    "from_matrix",
+    "to_rotvec",
+    "from_rotvec",
+    "to_axis_angle",
+    "from_axis_angle",
+    "to_mrp",
+    "from_mrp",
+]
+
+
+def _to_matrix(q: Array) -> Array:
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz = x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    rows = [
+        [1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy)],
+        [2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx)],
+        [2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy)],
+    ]
+    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def to_matrix(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
+    """Rotation matrix ``R(q)`` with ``rotate(q, v) == R @ v``.
+
+    ``R = I + 2 w [u]x + 2 [u]x^2`` for ``q = (w, u)``, i.e. [T] eq. (27a),
+    [C] eq. (35), [S] eq. (7), written with ``w^2 + |u|^2 = 1`` substituted on
+    the diagonal. Assumes ``|q| = 1``: for a non-unit ``q`` the result is not
+    orthogonal (normalise first). ``to_matrix(q) == to_matrix(-q)``.
+    """
+    return _to_matrix(_checks.quat(q))
+
+
+def _k_entries(b: Array, shift: float):
+    """Entries of Davenport's symmetric 4x4 ``K(B) = [[tr B, z^T], [z, B + B^T - tr(B) I]]`` plus ``shift * I``.
+
+    ``z = (B21 - B12, B02 - B20, B10 - B01)``. For every quaternion
+    ``q^T K(B) q = sum_ij B_ij R(q)_ij``; for a rotation matrix ``R`` itself,
+    ``K(R) + I = 4 q q^T`` (Bar-Itzhack 2000), so every column of it is
+    proportional to ``q``.
+    """
+    b00, b01, b02 = b[..., 0, 0], b[..., 0, 1], b[..., 0, 2]
+    b10, b11, b12 = b[..., 1, 0], b[..., 1, 1], b[..., 1, 2]
+    b20, b21, b22 = b[..., 2, 0], b[..., 2, 1], b[..., 2, 2]
+    diag = (
+        shift + b00 + b11 + b22,
+        shift + b00 - b11 - b22,
+        shift - b00 + b11 - b22,
+        shift - b00 - b11 + b22,
+    )
+    off = (b21 - b12, b02 - b20, b10 - b01, b01 + b10, b02 + b20, b12 + b21)
+    return diag, off
+
+
+def _k_columns(diag, off):
+    d0, d1, d2, d3 = diag
+    k01, k02, k03, k12, k13, k23 = off
+    return [
+        (d0, k01, k02, k03),
+        (k01, d1, k12, k13),
+        (k02, k12, d2, k23),
+        (k03, k13, k23, d3),
+    ]
+
+
+def _k_matrix(b: Array, shift: float = 0.0) -> Array:
+    cols = _k_columns(*_k_entries(b, shift))
+    return jnp.stack([jnp.stack(c, axis=-1) for c in cols], axis=-2)
+
+
+def _top_eigenvector(k: Array) -> Array:
+    """Canonical unit eigenvector of the largest eigenvalue of symmetric 4x4 ``k``."""
+    _, vecs = jnp.linalg.eigh(k)
+    return _canonicalize(vecs[..., :, -1])
+
+
+def _from_matrix_shepperd(m: Array) -> Array:
+    diag, off = _k_entries(m, 1.0)
+    # Shepperd: use the column of K + I with the largest diagonal entry. That
+    # entry is >= 1 for a rotation matrix (the four sum to 4), so the
+    # normalisation never divides by a small number and every branch has
+    # finite gradients.
+    best = jnp.argmax(jnp.stack(diag, axis=-1), axis=-1)
+    col = [jnp.zeros_like(diag[0]) for _ in range(4)]
+    for k, c in enumerate(_k_columns(diag, off)):
+        sel = best == k
+        col = [jnp.where(sel, ci, acc) for ci, acc in zip(c, col)]
+    q = jnp.stack(col, axis=-1)
+    q = q / jnp.sqrt(_safe.norm_sq(q))[..., None]
+    return _canonicalize(q)
+
+
+def from_matrix(m: Float[Array, "*batch 3 3"], *, nearest: bool = False) -> Float[Array, "*batch 4"]:
+    """Unit quaternion of a rotation matrix, canonical sign (``w >= 0``).
+
+    Every column of the symmetric matrix ``K = 4 q q^T`` is a linear function of
+    ``R`` (diagonal ``1 + R00 + R11 + R22``, ``1 + R00 - R11 - R22``, ...;
+    off-diagonal ``R21 - R12``, ``R01 + R10``, ...), so any column is
+    proportional to ``q``. Following Shepperd's method ([T] Algorithm 1) the
+    column with the largest diagonal entry is taken and normalised; that entry
+    is at least 1, so the result and its gradient are finite for every rotation,
+    including 180-degree ones.
+
+    Matrices that are not exactly orthonormal: by default the result is the
+    normalised Shepperd column, a unit quaternion that agrees with the nearest
+    rotation to first order in the deviation ``|M^T M - I|``. With
+    ``nearest=True`` the result is the eigenvector of ``K`` with the largest
+    eigenvalue (Bar-Itzhack 2000), the rotation closest to ``M`` in the
+    Frobenius norm, at the cost of a 4x4 ``eigh`` per matrix. Neither raises on
+    a reflection or a singular matrix: validate ``det(M) > 0`` yourself if needed.
+    """
+    m = _checks.mat3(m, "m")
+    return _top_eigenvector(_k_matrix(m)) if nearest else _from_matrix_shepperd(m)
+
+
+def _to_rotvec(q: Array) -> Array:
+    q = _canonicalize(q)
+    w = q[..., 0]
+    v = q[..., 1:]
+    return (2.0 * _safe.atan2_over_n(_safe.norm_sq(v), w))[..., None] * v
+
+
+def to_rotvec(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3"]:
+    """Rotation vector ``phi u`` with ``phi`` in ``[0, pi]``.
+
+    ``2 atan2(|v|, |w|) sign(w) v / |v|`` for ``q = (w, v)``: the inverse of
+    [T] eq. (31) and twice the vector part of ``log(canonicalize(q))``.
+    Scale-invariant, so any non-zero ``q`` is accepted. The factor
+    ``atan2(|v|, w)/|v|`` is a series near the identity, so the Jacobian there
+    is exactly ``2 I`` on the vector part and all higher derivatives are right.
+    At exactly 180 degrees ``phi u`` and ``-phi u`` are the same rotation; the
+    sign follows :func:`jaxquat.canonicalize`.
+    """
+    return _to_rotvec(_checks.quat(q))
+
+
+def _from_rotvec(r: Array) -> Array:
+    s = 0.25 * _safe.norm_sq(r)  # (phi/2)^2
+    w = _safe.cos_of_sq(s)
+    half_sinc = 0.5 * _safe.sinc_of_sq(s)
+    return jnp.concatenate([w[..., None], half_sinc[..., None] * r], axis=-1)
+
+
+def from_rotvec(r: Float[Array, "*batch 3"]) -> Float[Array, "*batch 4"]:
+    """Unit quaternion of the rotation vector ``r = phi u``: ``(cos(phi/2), sin(phi/2) u)``.
+
+    [T] eq. (31), [S] eq. (9); equal to ``exp((0, r/2))``. Smooth at ``r = 0``
+    (Jacobian ``I/2`` on the vector part). Any ``|r|`` is accepted; angles beyond
+    ``pi`` give ``w < 0``.
+    """
+    return _from_rotvec(_checks.vec3(r, "r"))
+
+
+def to_axis_angle(q: Float[Array, "*batch 4"]) -> tuple[Float[Array, "*batch 3"], Float[Array, "*batch"]]:
+    """Unit axis ``u`` and angle ``phi`` in ``[0, pi]``, [T] eq. (32).
+
+    Computed as ``phi = 2 atan2(|v|, |w|)`` (not ``2 acos(w)``, which loses half
+    the digits near the identity) and ``u = sign(w) v/|v|``. Scale-invariant.
+    At the identity the axis is undefined: the result is ``u = (1, 0, 0)``,
+    ``phi = 0``, with zero gradient for ``u`` and a zero subgradient for ``phi``
+    (whose true derivative there does not exist: ``phi = 2|v|`` is a cone).
+    """
+    q = _canonicalize(_checks.quat(q))
+    w = q[..., 0]
+    v = q[..., 1:]
+    n = _safe.safe_norm(v)
+    angle = 2.0 * jnp.arctan2(n, w)
+    zero = n == 0
+    axis = jnp.where(zero[..., None], jnp.asarray([1.0, 0.0, 0.0], dtype=q.dtype), v / jnp.where(zero, 1.0, n)[..., None])
+    return axis, angle
+
+
+def from_axis_angle(axis: Float[Array, "*batch 3"], angle: Float[Array, "*batch"] | float) -> Float[Array, "*batch 4"]:
+    """Unit quaternion ``(cos(phi/2), sin(phi/2) u)`` of a rotation by ``phi`` about ``u``, [T] eq. (31).
+
+    The axis is normalised here (so any non-zero axis is accepted); a zero axis
+    gives the identity when ``phi = 0`` and NaN otherwise. ``axis`` and
+    ``angle`` broadcast over their batch axes.
+    """
+    axis = _checks.vec3(axis, "axis")
+    angle = _checks.scalar_like(angle, "angle")
+    axis, angle = _checks.broadcast_batch([axis, angle], ["axis", "angle"], [1, 0])
+    nsq = _safe.norm_sq(axis)
+    unit = axis / jnp.sqrt(jnp.where(nsq > 0, nsq, 1.0))[..., None]
+    unit = jnp.where(((nsq == 0) & (angle != 0))[..., None], jnp.nan, unit)
+    half = 0.5 * angle
+    return jnp.concatenate([jnp.cos(half)[..., None], jnp.sin(half)[..., None] * unit], axis=-1)
+
+
+def to_mrp(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3"]:
+    """Modified Rodrigues parameters ``p = v / (|q| + w) = tan(phi/4) u``, with ``|p| <= 1``.
+
+    ``q`` is first put in the ``w >= 0`` hemisphere, so the shadow set is never
+    returned and ``|p| <= 1`` (``|p| = 1`` exactly at 180 degrees). Dividing by
+    ``|q| + w`` instead of ``1 + w`` makes it scale-invariant. Smooth everywhere
+    except the 180-degree hemisphere switch.
+    """
+    q = _canonicalize(_checks.quat(q))
+    w = q[..., 0]
+    n = jnp.sqrt(_safe.norm_sq(q))
+    return q[..., 1:] / (n + w)[..., None]
+
+
+def from_mrp(p: Float[Array, "*batch 3"]) -> Float[Array, "*batch 4"]:
+    """Unit quaternion of modified Rodrigues parameters: ``((1 - |p|^2), 2 p) / (1 + |p|^2)``.
+
+    Any ``p`` is accepted (``|p| > 1`` is the shadow set, giving ``w < 0``). Smooth everywhere.
+    """
+    p = _checks.vec3(p, "p")
+    psq = _safe.norm_sq(p)
+    denom = 1.0 + psq
+    return jnp.concatenate([((1.0 - psq) / denom)[..., None], (2.0 / denom)[..., None] * p], axis=-1)

@@ -1,0 +1,119 @@
+"""Euler angles: all 24 conventions, spelled as scipy spells them.
+
+Lower case (``"xyz"``) is *extrinsic*: rotate about the fixed x axis by
+``angles[0]``, then the fixed y axis, then the fixed z axis, so ``R = Rz Ry Rx``.
+Upper case (``"XYZ"``) is *intrinsic*: about x, then the new Y, then the new Z,
+so ``R = RX RY RZ``. Angles in radians.
+
+Extraction follows Bernardes & Viollet, "Quaternion to Euler angles conversion:
+A direct, general and computationally efficient method", PLoS ONE 17(11), 2022:
+every angle comes from ``atan2``/``hypot`` of linear combinations of the
+quaternion, never from ``arcsin``, so it keeps full precision next to gimbal lock
+in float32 as well as float64.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jax import Array
+from jaxtyping import Float
+
+from . import _checks, _safe
+from .algebra import _multiply
+
+__all__ = ["from_euler", "to_euler"]
+
+_AXIS = {"x": 0, "y": 1, "z": 2}
+
+
+def _elementary(axis: int, angle: Array) -> Array:
+    half = 0.5 * angle
+    c, s = jnp.cos(half), jnp.sin(half)
+    zero = jnp.zeros_like(half)
+    comps = [zero, zero, zero]
+    comps[axis] = s
+    return jnp.stack([c, *comps], axis=-1)
+
+
+def from_euler(angles: Float[Array, "*batch 3"], seq: str) -> Float[Array, "*batch 4"]:
+    """Unit quaternion of three successive elementary rotations.
+
+    Extrinsic ``"abc"``: ``q = q_c(angles[2]) q_b(angles[1]) q_a(angles[0])``;
+    intrinsic ``"ABC"``: ``q = q_A(angles[0]) q_B(angles[1]) q_C(angles[2])``,
+    with ``q_x(t) = (cos(t/2), sin(t/2), 0, 0)`` etc. ([T] eq. (31) and the
+    composition rule [T] eq. (24)). Matches ``scipy``'s ``Rotation.from_euler``
+    up to the sign of ``q``. Smooth in the angles everywhere.
+    """
+    seq = _checks.euler_seq(seq)
+    angles = _checks.vec3(angles, "angles")
+    axes = [_AXIS[c] for c in seq.lower()]
+    q0, q1, q2 = (_elementary(a, angles[..., i]) for i, a in enumerate(axes))
+    if seq.islower():
+        return _multiply(q2, _multiply(q1, q0))
+    return _multiply(q0, _multiply(q1, q2))
+
+
+def _gimbal_tolerance(dtype) -> float:
+    return 10.0 * float(jnp.finfo(dtype).eps)
+
+
+def to_euler(q: Float[Array, "*batch 4"], seq: str) -> Float[Array, "*batch 3"]:
+    """Euler angles of ``q`` for the sequence ``seq`` (inverse of :func:`from_euler`).
+
+    Ranges (as scipy): first and third angles in ``[-pi, pi]``; the middle angle
+    in ``[0, pi]`` for symmetric sequences (``"zxz"``) and ``[-pi/2, pi/2]`` for
+    asymmetric ones (``"xyz"``). Scale-invariant, so any non-zero ``q`` works.
+
+    Method (Bernardes & Viollet 2022): with ``(i, j, k)`` the extrinsic axis
+    order, permute the quaternion into ``(a, b, c, d)`` and take
+    ``theta2 = 2 atan2(hypot(c, d), hypot(a, b))``,
+    ``theta1, theta3 = atan2(b, a) -+ atan2(d, c)``.
+
+    Gimbal lock (middle angle within ``10 eps`` of 0 or pi, for asymmetric
+    sequences of +-pi/2): only the sum or difference of the outer angles is
+    determined. The third angle is then set to 0 (as scipy does) and the
+    first carries the whole rotation, so ``from_euler(to_euler(q))`` reproduces
+    ``q``'s rotation there too, and all angles are finite. The angles are not
+    differentiable at gimbal lock; the gradient returned there is that of this
+    branch (third angle constant, its gradient 0; the middle angle gets the zero
+    subgradient of ``hypot`` at the origin). Everywhere else gradients are exact.
+    """
+    seq = _checks.euler_seq(seq)
+    q = _checks.quat(q)
+    extrinsic = seq.islower()
+    i, j, k = (_AXIS[c] for c in (seq.lower() if extrinsic else seq.lower()[::-1]))
+    symmetric = i == k
+    if symmetric:
+        k = 3 - i - j
+    sign = float((i - j) * (j - k) * (k - i) // 2)
+
+    w = q[..., 0]
+    qi, qj, qk = q[..., 1 + i], q[..., 1 + j], q[..., 1 + k] * sign
+    if symmetric:
+        a, b, c, d = w, qi, qj, qk
+    else:
+        a, b, c, d = w - qj, qi + qk, qj + w, qk - qi
+
+    middle = 2.0 * jnp.arctan2(_safe.safe_hypot(c, d), _safe.safe_hypot(a, b))
+    half_sum = _safe.safe_atan2(b, a)
+    half_diff = _safe.safe_atan2(d, c)
+
+    tol = _gimbal_tolerance(q.dtype)
+    at_zero = jnp.abs(middle) <= tol
+    at_pi = jnp.abs(middle - jnp.pi) <= tol
+    regular = ~(at_zero | at_pi)
+
+    # In the locked branch the outer angle next to the fixed frame carries the rotation.
+    locked = jnp.where(at_zero, 2.0 * half_sum, 2.0 * half_diff * (-1.0 if extrinsic else 1.0))
+    outer_sign = 1.0 if symmetric else sign
+    if extrinsic:
+        first = jnp.where(regular, half_sum - half_diff, locked)
+        third = jnp.where(regular, half_sum + half_diff, 0.0) * outer_sign
+    else:
+        first = jnp.where(regular, half_sum + half_diff, locked) * outer_sign
+        third = jnp.where(regular, half_sum - half_diff, 0.0)
+    if not symmetric:
+        middle = middle - 0.5 * jnp.pi
+    angles = [first, middle, third]
+    wrap = lambda t: jnp.remainder(t + jnp.pi, 2.0 * jnp.pi) - jnp.pi  # noqa: E731
+    return jnp.stack([wrap(angles[0]), angles[1], wrap(angles[2])], axis=-1)

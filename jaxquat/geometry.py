@@ -1,0 +1,139 @@
+"""Geometry and statistics of rotations: angles, distances, averaging, Wahba's problem, sampling."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+from jaxtyping import Float
+
+from . import _checks, _safe
+from .algebra import _multiply, _canonicalize
+from .conversions import _k_matrix, _top_eigenvector
+
+__all__ = ["angle", "angle_between", "mean", "align_vectors", "random"]
+
+
+def _angle(q: Array) -> Array:
+    return 2.0 * jnp.arctan2(_safe.safe_norm(q[..., 1:]), jnp.abs(q[..., 0]))
+
+
+def angle(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch"]:
+    """Rotation angle ``phi = 2 atan2(|v|, |w|)`` in ``[0, pi]`` ([T] eq. (32a), without ``acos``).
+
+    Scale-invariant. ``phi`` is not differentiable at the identity (it is the
+    cone ``2|v|``); there the gradient returned is the zero subgradient. At 180
+    degrees (``w = 0``) the gradient with respect to ``w`` is 0 (a maximum).
+    """
+    return _angle(_checks.quat(q))
+
+
+def angle_between(p: Float[Array, "*batch 4"], q: Float[Array, "*batch 4"]) -> Float[Array, "*batch"]:
+    """Geodesic distance on SO(3): the angle of the relative rotation ``p* q``, in ``[0, pi]``.
+
+    Symmetric in ``p`` and ``q`` and invariant to the sign of either. Assumes unit inputs.
+    """
+    p = _checks.quat(p, "p")
+    q = _checks.quat(q, "q")
+    p, q = _checks.broadcast_batch([p, q], ["p", "q"], [1, 1])
+    conj = jnp.asarray([1.0, -1.0, -1.0, -1.0], dtype=p.dtype)
+    return _angle(_multiply(p * conj, q))
+
+
+def mean(q: Float[Array, "*batch n 4"], weights: Float[Array, "*batch n"] | None = None) -> Float[Array, "*batch 4"]:
+    """Chordal L2 mean of rotations (Markley, Cheng, Crassidis & Oshman 2007).
+
+    The unit eigenvector of the largest eigenvalue of ``M = sum_i w_i q_i q_i^T``
+    (a 4x4 ``eigh``), which minimises ``sum_i w_i |R(q) - R(q_i)|_F^2``. Reduces
+    the second-to-last axis (``n`` rotations); leading axes are batch axes.
+    Invariant to the sign of each ``q_i``; returns the canonical sign
+    (``w >= 0``). Weights must be non-negative (not checked under ``jit``);
+    default all ones. Gradients exist where the top eigenvalue is simple.
+    """
+    q = _checks.quat(q)
+    if q.ndim < 2:
+        raise ValueError(f"argument 'q' must be shaped (..., n, 4) with n rotations to average, got shape {tuple(q.shape)}")
+    if weights is None:
+        m = jnp.einsum("...ni,...nj->...ij", q, q)
+    else:
+        weights = _checks.scalar_like(weights, "weights")
+        if weights.shape[-1:] != q.shape[-2:-1]:
+            raise ValueError(
+                f"argument 'weights' must be shaped (..., n) with n = {q.shape[-2]} to match 'q' {tuple(q.shape)}, "
+                f"got shape {tuple(weights.shape)}"
+            )
+        q, weights = _checks.broadcast_batch([q, weights], ["q", "weights"], [2, 1])
+        m = jnp.einsum("...n,...ni,...nj->...ij", weights, q, q)
+    return _top_eigenvector(m)
+
+
+def _minimal_rotation(a: Array, b: Array) -> Array:
+    """Smallest rotation taking the direction of ``b`` onto that of ``a``."""
+    na = jnp.sqrt(_safe.norm_sq(a))
+    nb = jnp.sqrt(_safe.norm_sq(b))
+    w = na * nb + jnp.sum(a * b, axis=-1)
+    v = jnp.cross(b, a)
+    # Antiparallel: any axis perpendicular to b, rotation by pi.
+    anti = w <= 1e3 * jnp.finfo(a.dtype).eps * na * nb
+    pick_x = jnp.abs(b[..., 0]) <= jnp.maximum(jnp.abs(b[..., 1]), jnp.abs(b[..., 2]))
+    helper = jnp.where(pick_x[..., None], jnp.asarray([1.0, 0.0, 0.0], a.dtype), jnp.asarray([0.0, 1.0, 0.0], a.dtype))
+    perp = jnp.cross(b, helper)
+    q = jnp.where(anti[..., None], jnp.concatenate([jnp.zeros_like(w)[..., None], perp], -1), jnp.concatenate([w[..., None], v], -1))
+    return _canonicalize(q / jnp.sqrt(_safe.norm_sq(q))[..., None])
+
+
+def align_vectors(
+    a: Float[Array, "*batch n 3"], b: Float[Array, "*batch n 3"], weights: Float[Array, "*batch n"] | None = None
+) -> Float[Array, "*batch 4"]:
+    """Rotation ``q`` minimising ``sum_i w_i |a_i - R(q) b_i|^2`` (Wahba's problem).
+
+    Solved by Davenport's q-method: ``q`` is the top eigenvector of
+    ``K = [[tr B, z^T], [z, B + B^T - tr(B) I]]`` with ``B = sum_i w_i a_i b_i^T``
+    and ``z = (B21 - B12, B02 - B20, B10 - B01)``, since
+    ``q^T K q = sum_i w_i a_i . R(q) b_i``. The same convention as scipy's
+    ``Rotation.align_vectors(a, b)``: ``a ~ R b``. Canonical sign (``w >= 0``).
+
+    With a single vector pair (``n == 1``, known at trace time) the problem is
+    underdetermined; the minimal rotation taking ``b`` onto ``a`` is returned
+    (Horn's closed form ``normalize(|a||b| + a.b, b x a)``; a rotation by pi
+    about an axis perpendicular to ``b`` when they are antiparallel). With
+    ``n >= 2`` vectors all parallel the answer is likewise not unique and the
+    gradient does not exist.
+    """
+    a = _checks.vec3(a, "a")
+    b = _checks.vec3(b, "b")
+    if a.ndim < 2 or b.ndim < 2 or a.shape[-2] != b.shape[-2]:
+        raise ValueError(
+            f"arguments 'a' and 'b' must be shaped (..., n, 3) with the same n, got {tuple(a.shape)} and {tuple(b.shape)}"
+        )
+    if weights is None:
+        a, b = _checks.broadcast_batch([a, b], ["a", "b"], [2, 2])
+        weights = jnp.ones(a.shape[:-1], a.dtype)
+    else:
+        weights = _checks.scalar_like(weights, "weights")
+        if weights.shape[-1:] != a.shape[-2:-1]:
+            raise ValueError(
+                f"argument 'weights' must be shaped (..., n) with n = {a.shape[-2]}, got shape {tuple(weights.shape)}"
+            )
+        a, b, weights = _checks.broadcast_batch([a, b, weights], ["a", "b", "weights"], [2, 2, 1])
+    if a.shape[-2] == 1:
+        return _minimal_rotation(a[..., 0, :], b[..., 0, :])
+    bmat = jnp.einsum("...n,...ni,...nj->...ij", weights, a, b)
+    return _top_eigenvector(_k_matrix(bmat))
+
+
+def random(key: Array, shape: tuple[int, ...] | int = (), dtype: Any = None) -> Float[Array, "*shape 4"]:
+    """Rotations drawn uniformly from SO(3) (Haar measure): normalised 4-D Gaussians.
+
+    An isotropic Gaussian in R^4 normalised to S^3 is uniform on S^3, and S^3
+    covers SO(3) twice uniformly. ``dtype`` defaults to JAX's default float.
+    """
+    if isinstance(shape, int):
+        shape = (shape,)
+    dtype = jnp.asarray(0.0).dtype if dtype is None else jnp.dtype(dtype)
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise TypeError(f"argument 'dtype' must be a floating dtype, got {dtype}")
+    g = jax.random.normal(key, tuple(shape) + (4,), dtype=dtype)
+    return g / jnp.sqrt(_safe.norm_sq(g))[..., None]
