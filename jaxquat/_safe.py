@@ -98,3 +98,8 @@ def safe_atan2(y: Array, x: Array) -> Array:
 def safe_hypot(x: Array, y: Array) -> Array:
     """``hypot(x, y)`` with gradient 0 at ``(0, 0)``."""
     return safe_sqrt(x * x + y * y)
+
+
+def const_like(values, like: Array) -> Array:
+    """A constant vector broadcast to ``like``'s batch shape (explicitly, for strict rank promotion)."""
+    return jnp.broadcast_to(jnp.asarray(values, dtype=like.dtype), like.shape[:-1] + (len(values),))

@@ -71,10 +71,13 @@ def multiply(p: Float[Array, "*batch 4"], q: Float[Array, "*batch 4"]) -> Float[
     return _multiply(p, q)
 
 
+def _conjugate(q: Array) -> Array:
+    return jnp.concatenate([q[..., :1], -q[..., 1:]], axis=-1)
+
+
 def conjugate(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4"]:
     """Conjugate ``q* = (q0, -q)``, [T] eq. (9). The inverse rotation for unit ``q``."""
-    q = _checks.quat(q)
-    return q * jnp.asarray([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
+    return _conjugate(_checks.quat(q))
 
 
 def norm(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch"]:
@@ -103,7 +106,7 @@ def inverse(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4"]:
     For a zero quaternion the result is NaN (element-wise, as in :func:`normalize`).
     """
     q = _checks.quat(q)
-    return conjugate(q) / _safe.norm_sq(q)[..., None]
+    return _conjugate(q) / _safe.norm_sq(q)[..., None]
 
 
 def identity(shape: tuple[int, ...] | int = (), dtype: Any = None) -> Float[Array, "*shape 4"]:
@@ -150,7 +153,7 @@ def _log(q: Array) -> Array:
     # Real negative quaternions: log is (ln|w|, pi, 0, 0), one of infinitely many.
     real_negative = (nsq == 0) & (w < 0)
     vec = factor[..., None] * v
-    vec = jnp.where(real_negative[..., None], jnp.asarray([jnp.pi, 0.0, 0.0], dtype=q.dtype), vec)
+    vec = jnp.where(real_negative[..., None], _safe.const_like([jnp.pi, 0.0, 0.0], vec), vec)
     scalar = 0.5 * jnp.log(qsq)
     return jnp.concatenate([scalar[..., None], vec], axis=-1)
 

@@ -9,6 +9,7 @@ Source documents: Tasora (2016) [T], Chou (1992) [C], Schwab (2002) [S].
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
@@ -89,10 +90,42 @@ def _k_matrix(b: Array, shift: float = 0.0) -> Array:
     return jnp.stack([jnp.stack(c, axis=-1) for c in cols], axis=-2)
 
 
-def _top_eigenvector(k: Array) -> Array:
-    """Canonical unit eigenvector of the largest eigenvalue of symmetric 4x4 ``k``."""
+@jax.custom_jvp
+def _top_eigenvector_f(k: Array) -> Array:
     _, vecs = jnp.linalg.eigh(k)
     return _canonicalize(vecs[..., :, -1])
+
+
+@_top_eigenvector_f.defjvp
+def _top_eigenvector_jvp(primals, tangents):
+    # First-order perturbation of a simple eigenvalue's eigenvector:
+    #   dv = sum_{j != top} v_j (v_j^T dK v) / (lam_top - lam_j).
+    # Only the gaps to the top eigenvalue appear, so the lower eigenvalues may be
+    # degenerate (they are, for K of an exact rotation: 3, -1, -1, -1), where
+    # eigh's own derivative divides by zero.
+    (k,), (dk,) = primals, tangents
+    lam, vecs = jnp.linalg.eigh(k)
+    v = _canonicalize(vecs[..., :, -1])
+    sign = jnp.sum(v * vecs[..., :, -1], axis=-1, keepdims=True)
+    others = vecs[..., :, :-1] * sign[..., None]
+    gaps = lam[..., -1:] - lam[..., :-1]
+    safe_gaps = jnp.where(gaps > 0, gaps, 1.0)
+    coeff = jnp.einsum("...ij,...ik,...k->...j", others, dk, v)
+    coeff = jnp.where(gaps > 0, coeff / safe_gaps, 0.0)
+    return v, jnp.einsum("...ij,...j->...i", others, coeff)
+
+
+def _top_eigenvector(k: Array) -> Array:
+    """Canonical unit eigenvector of the largest eigenvalue of symmetric 4x4 ``k``.
+
+    Differentiated by a custom JVP that needs only the top eigenvalue to be
+    simple. LAPACK has no half-precision ``eigh``; float16/bfloat16 inputs are
+    solved in float32 and the result cast back.
+    """
+    dtype = k.dtype
+    if jnp.finfo(dtype).bits < 32:
+        k = k.astype(jnp.float32)
+    return _top_eigenvector_f(k).astype(dtype)
 
 
 def _from_matrix_shepperd(m: Array) -> Array:
@@ -129,6 +162,12 @@ def from_matrix(m: Float[Array, "*batch 3 3"], *, nearest: bool = False) -> Floa
     eigenvalue (Bar-Itzhack 2000), the rotation closest to ``M`` in the
     Frobenius norm, at the cost of a 4x4 ``eigh`` per matrix. Neither raises on
     a reflection or a singular matrix: validate ``det(M) > 0`` yourself if needed.
+
+    Gradients: both methods are smooth along SO(3). Off SO(3) the Shepperd
+    result depends on which column was selected, so at a tie between two
+    diagonal entries its derivative in a direction leaving SO(3) depends on the
+    branch; the ``nearest=True`` result is smooth in every direction (its
+    ``eigh`` derivative needs only the top eigenvalue to be simple).
     """
     m = _checks.mat3(m, "m")
     return _top_eigenvector(_k_matrix(m)) if nearest else _from_matrix_shepperd(m)
@@ -187,7 +226,7 @@ def to_axis_angle(q: Float[Array, "*batch 4"]) -> tuple[Float[Array, "*batch 3"]
     n = _safe.safe_norm(v)
     angle = 2.0 * jnp.arctan2(n, w)
     zero = n == 0
-    axis = jnp.where(zero[..., None], jnp.asarray([1.0, 0.0, 0.0], dtype=q.dtype), v / jnp.where(zero, 1.0, n)[..., None])
+    axis = jnp.where(zero[..., None], _safe.const_like([1.0, 0.0, 0.0], v), v / jnp.where(zero, 1.0, n)[..., None])
     return axis, angle
 
 

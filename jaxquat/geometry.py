@@ -10,14 +10,15 @@ from jax import Array
 from jaxtyping import Float
 
 from . import _checks, _safe
-from .algebra import _multiply, _canonicalize
+from .algebra import _canonicalize, _conjugate, _multiply
 from .conversions import _k_matrix, _top_eigenvector
 
 __all__ = ["angle", "angle_between", "mean", "align_vectors", "random"]
 
 
 def _angle(q: Array) -> Array:
-    return 2.0 * jnp.arctan2(_safe.safe_norm(q[..., 1:]), jnp.abs(q[..., 0]))
+    w = q[..., 0]
+    return 2.0 * jnp.arctan2(_safe.safe_norm(q[..., 1:]), _safe.safe_sqrt(w * w))
 
 
 def angle(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch"]:
@@ -38,8 +39,7 @@ def angle_between(p: Float[Array, "*batch 4"], q: Float[Array, "*batch 4"]) -> F
     p = _checks.quat(p, "p")
     q = _checks.quat(q, "q")
     p, q = _checks.broadcast_batch([p, q], ["p", "q"], [1, 1])
-    conj = jnp.asarray([1.0, -1.0, -1.0, -1.0], dtype=p.dtype)
-    return _angle(_multiply(p * conj, q))
+    return _angle(_multiply(_conjugate(p), q))
 
 
 def mean(q: Float[Array, "*batch n 4"], weights: Float[Array, "*batch n"] | None = None) -> Float[Array, "*batch 4"]:
@@ -78,7 +78,7 @@ def _minimal_rotation(a: Array, b: Array) -> Array:
     # Antiparallel: any axis perpendicular to b, rotation by pi.
     anti = w <= 1e3 * jnp.finfo(a.dtype).eps * na * nb
     pick_x = jnp.abs(b[..., 0]) <= jnp.maximum(jnp.abs(b[..., 1]), jnp.abs(b[..., 2]))
-    helper = jnp.where(pick_x[..., None], jnp.asarray([1.0, 0.0, 0.0], a.dtype), jnp.asarray([0.0, 1.0, 0.0], a.dtype))
+    helper = jnp.where(pick_x[..., None], _safe.const_like([1.0, 0.0, 0.0], b), _safe.const_like([0.0, 1.0, 0.0], b))
     perp = jnp.cross(b, helper)
     q = jnp.where(anti[..., None], jnp.concatenate([jnp.zeros_like(w)[..., None], perp], -1), jnp.concatenate([w[..., None], v], -1))
     return _canonicalize(q / jnp.sqrt(_safe.norm_sq(q))[..., None])

@@ -7,7 +7,7 @@ from jax import Array
 from jaxtyping import Float
 
 from . import _checks, _safe
-from .algebra import _multiply
+from .algebra import _conjugate, _multiply
 
 __all__ = ["slerp"]
 
@@ -30,7 +30,7 @@ def slerp(
     t = _checks.scalar_like(t, "t")
     p, q, t = _checks.broadcast_batch([p, q, t], ["p", "q", "t"], [1, 1, 0])
     q = jnp.where((jnp.sum(p * q, axis=-1) < 0)[..., None], -q, q)
-    r = _multiply(p * jnp.asarray([1.0, -1.0, -1.0, -1.0], dtype=p.dtype), q)
+    r = _multiply(_conjugate(p), q)
     w, v = r[..., 0], r[..., 1:]
     nsq = _safe.norm_sq(v)
     scale = t * _safe.atan2_over_n(nsq, w)  # t * (half angle) / |v|

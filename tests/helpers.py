@@ -1,0 +1,103 @@
+"""Shared strategies, references and tolerances for the jaxquat suite.
+
+Hypothesis draws *seeds*, and each seed makes a fixed-shape batch, so every
+jitted function compiles once per dtype and is reused across examples.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from hypothesis import strategies as st
+
+X64 = bool(jax.config.jax_enable_x64)
+DTYPE = jnp.float64 if X64 else jnp.float32
+NP_DTYPE = np.float64 if X64 else np.float32
+# Tolerances for values of O(1): float64 near rounding, float32 a few ulps times condition.
+TOL = 1e-10 if X64 else 2e-5
+BATCH = 16
+
+seeds = st.integers(min_value=0, max_value=2**31 - 1)
+
+
+def singular_quats(dtype=np.float64) -> np.ndarray:
+    """The points where naive formulas break: identity, tiny angles, 180 degrees, sign flips."""
+    s = np.sqrt(0.5)
+    rows = [
+        [1, 0, 0, 0],
+        [-1, 0, 0, 0],
+        [np.cos(5e-9), np.sin(5e-9), 0, 0],  # angle 1e-8
+        [np.cos(5e-9), 0, -np.sin(5e-9) * s, np.sin(5e-9) * s],
+        [0, 1, 0, 0],  # 180 degrees
+        [0, 0, 1, 0],
+        [0, 0, 0, 1],
+        [0, s, s, 0],
+        [0, -s, 0, s],
+        [1e-9, 1, 0, 0],  # just off 180
+        [-1e-9, 0, 1, 0],
+        [s, s, 0, 0],  # 90 degrees
+    ]
+    q = np.asarray(rows, dtype=np.float64)
+    return (q / np.linalg.norm(q, axis=-1, keepdims=True)).astype(dtype)
+
+
+def random_quats(seed: int, n: int = BATCH, with_singular: bool = True, dtype=None) -> np.ndarray:
+    """``n`` random unit quaternions; with ``with_singular`` the first rows are the singular set."""
+    dtype = NP_DTYPE if dtype is None else dtype
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=-1, keepdims=True)
+    if with_singular:
+        sing = singular_quats()
+        k = rng.integers(0, 4)  # a different few singular rows each example
+        idx = (np.arange(min(4, n)) * 3 + k) % len(sing)
+        q[: len(idx)] = sing[idx]
+    return q.astype(dtype)
+
+
+def random_vectors(seed: int, n: int = BATCH, dtype=None) -> np.ndarray:
+    dtype = NP_DTYPE if dtype is None else dtype
+    return np.random.default_rng(seed + 1).normal(size=(n, 3)).astype(dtype)
+
+
+def to_scipy(q) -> np.ndarray:
+    """jaxquat (w, x, y, z) -> scipy (x, y, z, w), in float64."""
+    return np.asarray(q, dtype=np.float64)[..., [1, 2, 3, 0]]
+
+
+def from_scipy(q) -> np.ndarray:
+    return np.asarray(q, dtype=np.float64)[..., [3, 0, 1, 2]]
+
+
+def assert_same_rotation(p, q, tol=None):
+    """``p`` and ``q`` are the same rotation: ``p = +-q`` element-wise."""
+    tol = TOL if tol is None else tol
+    p = np.asarray(p, dtype=np.float64)
+    q = np.asarray(q, dtype=np.float64)
+    err = np.minimum(np.abs(p - q).max(-1), np.abs(p + q).max(-1))
+    assert np.all(err <= tol), f"max rotation mismatch {err.max():.3e} > {tol:.1e}"
+
+
+def assert_close(a, b, tol=None, what=""):
+    tol = TOL if tol is None else tol
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    assert a.shape == b.shape, f"{what}: shape {a.shape} != {b.shape}"
+    err = np.abs(a - b).max() if a.size else 0.0
+    assert err <= tol, f"{what}: max abs error {err:.3e} > {tol:.1e}"
+
+
+def central_difference_jacobian(f, x: np.ndarray, h: float = 1e-6) -> np.ndarray:
+    """Jacobian of ``f`` at ``x`` (float64) by central differences: shape out.shape + x.shape."""
+    x = np.asarray(x, dtype=np.float64)
+    f0 = np.asarray(f(jnp.asarray(x)))
+    jac = np.zeros(f0.shape + x.shape)
+    flat = x.reshape(-1)
+    for i in range(flat.size):
+        e = np.zeros_like(flat)
+        e[i] = h
+        fp = np.asarray(f(jnp.asarray((flat + e).reshape(x.shape))))
+        fm = np.asarray(f(jnp.asarray((flat - e).reshape(x.shape))))
+        jac.reshape(f0.shape + (-1,))[..., i] = (fp - fm) / (2 * h)
+    return jac

@@ -1,0 +1,301 @@
+"""The contract every public function keeps: jit/vmap/nested batching, dtypes,
+finite and correct gradients (forward and reverse, against finite differences)
+at random and singular points, and clear errors for bad input."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxquat as jq
+from helpers import DTYPE, X64, assert_close, central_difference_jacobian
+
+B = 12
+RNG = np.random.default_rng(1234)
+S = np.sqrt(0.5)
+
+
+def _unit(a):
+    a = np.asarray(a, np.float64)
+    return a / np.linalg.norm(a, axis=-1, keepdims=True)
+
+
+# Points where the functions are smooth: finite differences are valid here. They
+# include the identity, a 1e-8 rotation, rotations just short of 180 degrees and
+# Euler angles 0.05 rad from gimbal lock.
+SMOOTH_Q = _unit(
+    np.concatenate(
+        [
+            [[1, 0, 0, 0], [np.cos(5e-9), np.sin(5e-9), 0, 0], [1e-3, 1, 0, 0], [1e-3, 0, S, S]],
+            [[np.cos(np.pi / 4 - 0.025), 0, np.sin(np.pi / 4 - 0.025), 0]],  # pitch 90 - 2.9 deg
+            RNG.normal(size=(B - 5, 4)),
+        ]
+    )
+)
+# Exactly singular points: gradients must be finite (not NaN/inf) and forward == reverse.
+SINGULAR_Q = _unit(
+    [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, S, S], [S, 0, S, 0], [-1, 0, 0, 0], [0.5, 0.5, 0.5, 0.5]]
+    + [[S, 0, -S, 0]] * (B - 6)
+)
+
+
+def _args(kind: str, q: np.ndarray):
+    n = len(q)
+    rng = np.random.default_rng(n)
+    if kind == "q":
+        return q
+    if kind == "p":
+        return _unit(rng.normal(size=q.shape))
+    if kind == "v":
+        return rng.normal(size=(n, 3))
+    if kind == "m":
+        return np.asarray(jq.to_matrix(jnp.asarray(q)))
+    if kind == "t":
+        return rng.uniform(0.1, 0.9, n)
+    if kind == "r":
+        return np.asarray(jq.to_rotvec(jnp.asarray(q)))
+    if kind == "angles":
+        return np.stack([rng.uniform(-3, 3, n), rng.uniform(-1.5, 1.5, n), rng.uniform(-3, 3, n)], -1)
+    if kind == "qn":
+        return _unit(q[:, None, :] + 0.3 * rng.normal(size=(n, 5, 4)))
+    if kind == "vn":
+        return rng.normal(size=(n, 5, 3))
+    if kind == "an":
+        # a_i = R b_i + noise so the Wahba problem is well posed
+        b = _args("vn", q)
+        return np.asarray(jq.rotate(jnp.asarray(q)[:, None, :], jnp.asarray(b))) + 0.05 * rng.normal(size=b.shape)
+    if kind == "wn":
+        return rng.uniform(0.5, 1.5, (n, 5))
+    if kind == "p3":
+        return np.asarray(jq.to_mrp(jnp.asarray(q)))
+    raise KeyError(kind)
+
+
+# name -> (function, argument kinds, differentiable argument index or None)
+REGISTRY = {
+    "multiply": (jq.multiply, ["q", "p"], 0),
+    "conjugate": (jq.conjugate, ["q"], 0),
+    "inverse": (jq.inverse, ["q"], 0),
+    "norm": (jq.norm, ["q"], 0),
+    "normalize": (jq.normalize, ["q"], 0),
+    "exp": (jq.exp, ["r4"], 0),
+    "log": (jq.log, ["q"], 0),
+    "power": (jq.power, ["q", "t"], 0),
+    "left_matrix": (jq.left_matrix, ["q"], 0),
+    "right_matrix": (jq.right_matrix, ["q"], 0),
+    "rotate": (jq.rotate, ["q", "v"], 0),
+    "canonicalize": (jq.canonicalize, ["q"], 0),
+    "to_matrix": (jq.to_matrix, ["q"], 0),
+    "from_matrix": (jq.from_matrix, ["m"], 0),
+    "from_matrix_nearest": (lambda m: jq.from_matrix(m, nearest=True), ["m"], 0),
+    "to_rotvec": (jq.to_rotvec, ["q"], 0),
+    "from_rotvec": (jq.from_rotvec, ["r"], 0),
+    "to_axis_angle": (jq.to_axis_angle, ["q"], 0),
+    "from_axis_angle": (jq.from_axis_angle, ["v", "t"], 1),
+    "to_mrp": (jq.to_mrp, ["q"], 0),
+    "from_mrp": (jq.from_mrp, ["p3"], 0),
+    "to_euler_xyz": (lambda q: jq.to_euler(q, "xyz"), ["q"], 0),
+    "to_euler_ZXZ": (lambda q: jq.to_euler(q, "ZXZ"), ["q"], 0),
+    "from_euler_ZYX": (lambda a: jq.from_euler(a, "ZYX"), ["angles"], 0),
+    "angle": (jq.angle, ["q"], 0),
+    "angle_between": (jq.angle_between, ["q", "p"], 0),
+    "slerp": (jq.slerp, ["q", "p", "t"], 0),
+    "slerp_t": (jq.slerp, ["p", "q", "t"], 2),
+    "mean": (jq.mean, ["qn", "wn"], 0),
+    "align_vectors": (jq.align_vectors, ["an", "vn", "wn"], 0),
+}
+
+# Rows of SMOOTH_Q where a function has a genuine kink, so finite differences
+# (step 1e-6) are not valid there: the cone of the angle within 1e-8 of the
+# identity, gimbal lock of symmetric sequences at the identity and at 180
+# degrees about x, and a tie between two Shepperd branches (from_matrix is
+# smooth along SO(3) there but its off-manifold derivative depends on the branch).
+FD_EXCLUDED_ROWS = {
+    "angle": [0, 1],
+    "to_axis_angle": [0, 1],
+    "to_euler_ZXZ": [0, 1, 2],
+    "from_matrix": [3],
+}
+
+# Functions with a genuine kink at some singular point; there we only require finiteness.
+NONSMOOTH_AT_SINGULAR = {"norm", "canonicalize", "to_rotvec", "to_axis_angle", "to_mrp", "to_euler_xyz",
+                         "to_euler_ZXZ", "angle", "angle_between", "log", "power", "slerp", "from_matrix"}
+
+
+def _make(name, q):
+    fn, kinds, diff = REGISTRY[name]
+    args = []
+    for k in kinds:
+        if k == "r4":
+            a = np.concatenate([np.zeros((len(q), 1)), _args("r", q) / 2], -1)
+            a[:, 0] = np.linspace(-1, 1, len(q))
+        else:
+            a = _args(k, q)
+        args.append(np.asarray(a))
+    return fn, args, diff
+
+
+def _leaves(out):
+    return jax.tree_util.tree_leaves(out)
+
+
+def _loss(fn, args, diff, weights):
+    def loss(x):
+        a = list(args)
+        a[diff] = x
+        return sum(jnp.sum(o * w) for o, w in zip(_leaves(fn(*a)), weights))
+
+    return loss
+
+
+NAMES = sorted(REGISTRY)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_jit_vmap_and_nested_batching(name):
+    fn, args, _ = _make(name, SMOOTH_Q)
+    args = [jnp.asarray(a, DTYPE) for a in args]
+    eager = fn(*args)
+    jitted = jax.jit(fn)(*args)
+    mapped = jax.vmap(fn)(*args)
+    for e, j, m in zip(_leaves(eager), _leaves(jitted), _leaves(mapped)):
+        assert e.dtype == DTYPE, f"{name} changed dtype to {e.dtype}"
+        assert_close(j, e, tol=1e-12 if X64 else 1e-5, what=f"{name} jit")
+        assert_close(m, e, tol=1e-12 if X64 else 1e-5, what=f"{name} vmap")
+    # Nested batch (3, 4, ...) gives the same numbers as the flat batch.
+    nested = fn(*[a.reshape((3, 4) + a.shape[1:]) for a in args])
+    for e, n in zip(_leaves(eager), _leaves(nested)):
+        assert_close(n.reshape(e.shape), e, tol=1e-12 if X64 else 1e-5, what=f"{name} nested")
+
+
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16])
+@pytest.mark.parametrize("name", NAMES)
+def test_low_precision_runs(name, dtype):
+    fn, args, _ = _make(name, SMOOTH_Q)
+    out = fn(*[jnp.asarray(a, dtype) for a in args])
+    for o in _leaves(out):
+        assert o.dtype == dtype, f"{name}: {o.dtype} != {dtype}"
+        assert np.all(np.isfinite(np.asarray(o, np.float32)))
+    ref = fn(*[jnp.asarray(a, jnp.float32) for a in args])
+    for o, r in zip(_leaves(out), _leaves(ref)):
+        o, r = np.asarray(o, np.float32), np.asarray(r, np.float32)
+        if name.startswith("to_euler"):  # angles near +-pi may wrap either way
+            o = r + (o - r + np.pi) % (2 * np.pi) - np.pi
+        # 3 significant digits of float16/bfloat16, amplified a little by the op.
+        assert_close(o, r, tol=0.1, what=f"{name} {dtype}")
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_gradients_match_finite_differences(name):
+    """Reverse mode, forward mode and central differences agree at smooth points."""
+    fn, args, diff = _make(name, SMOOTH_Q)
+    out = fn(*[jnp.asarray(a, DTYPE) for a in args])
+    weights = [jnp.asarray(np.random.default_rng(7).normal(size=o.shape), DTYPE) for o in _leaves(out)]
+    loss = jax.jit(_loss(fn, [jnp.asarray(a, DTYPE) for a in args], diff, weights))
+    x = jnp.asarray(args[diff], DTYPE)
+    g_rev = jax.grad(loss)(x)
+    direction = jnp.asarray(np.random.default_rng(8).normal(size=x.shape), DTYPE)
+    _, g_fwd = jax.jvp(loss, (x,), (direction,))
+    assert np.all(np.isfinite(np.asarray(g_rev)))
+    scale = float(np.abs(np.asarray(g_rev)).max()) + 1.0
+    assert abs(float(g_fwd) - float(jnp.sum(g_rev * direction))) <= (1e-10 if X64 else 1e-3) * scale * x.size
+    if X64:
+        fd = central_difference_jacobian(loss, np.asarray(x), h=1e-6)
+        keep = np.setdiff1d(np.arange(len(x)), FD_EXCLUDED_ROWS.get(name, []))
+        assert_close(np.asarray(g_rev)[keep] / scale, fd[keep] / scale, tol=1e-6, what=f"{name} grad vs central differences")
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_gradients_finite_at_singular_points(name):
+    fn, args, diff = _make(name, SINGULAR_Q)
+    args = [jnp.asarray(a, DTYPE) for a in args]
+    out = fn(*args)
+    for o in _leaves(out):
+        assert np.all(np.isfinite(np.asarray(o))), f"{name} value not finite at a singular point"
+    jac_rev = [jax.jacrev(lambda x, i=i: _leaves(fn(*args[:diff], x, *args[diff + 1 :]))[i])(args[diff]) for i in range(len(_leaves(out)))]
+    jac_fwd = [jax.jacfwd(lambda x, i=i: _leaves(fn(*args[:diff], x, *args[diff + 1 :]))[i])(args[diff]) for i in range(len(_leaves(out)))]
+    for r, f in zip(jac_rev, jac_fwd):
+        assert np.all(np.isfinite(np.asarray(r))), f"{name}: reverse-mode Jacobian not finite at a singular point"
+        assert np.all(np.isfinite(np.asarray(f))), f"{name}: forward-mode Jacobian not finite at a singular point"
+        assert_close(r, f, tol=1e-9 if X64 else 1e-3, what=f"{name} jacrev vs jacfwd")
+
+
+# ------------------------------------------------------------------ bad input
+
+BAD_SHAPES = {
+    "multiply": lambda: jq.multiply(jnp.zeros((5, 3)), jnp.zeros((5, 4))),
+    "conjugate": lambda: jq.conjugate(jnp.zeros((3, 4, 3))),
+    "inverse": lambda: jq.inverse(jnp.zeros(3)),
+    "norm": lambda: jq.norm(jnp.zeros((2, 5))),
+    "normalize": lambda: jq.normalize(jnp.zeros((2, 3))),
+    "exp": lambda: jq.exp(jnp.zeros(3)),
+    "log": lambda: jq.log(jnp.zeros((4, 3))),
+    "power": lambda: jq.power(jnp.zeros(3), 0.5),
+    "left_matrix": lambda: jq.left_matrix(jnp.zeros(3)),
+    "right_matrix": lambda: jq.right_matrix(jnp.zeros(5)),
+    "rotate": lambda: jq.rotate(jnp.zeros(4).at[0].set(1), jnp.zeros(4)),
+    "canonicalize": lambda: jq.canonicalize(jnp.zeros(2)),
+    "to_matrix": lambda: jq.to_matrix(jnp.zeros((3, 3))),
+    "from_matrix": lambda: jq.from_matrix(jnp.zeros((3, 4))),
+    "to_rotvec": lambda: jq.to_rotvec(jnp.zeros(3)),
+    "from_rotvec": lambda: jq.from_rotvec(jnp.zeros(4)),
+    "to_axis_angle": lambda: jq.to_axis_angle(jnp.zeros(3)),
+    "from_axis_angle": lambda: jq.from_axis_angle(jnp.zeros(4), 1.0),
+    "to_mrp": lambda: jq.to_mrp(jnp.zeros(3)),
+    "from_mrp": lambda: jq.from_mrp(jnp.zeros(4)),
+    "to_euler": lambda: jq.to_euler(jnp.zeros(3), "xyz"),
+    "from_euler": lambda: jq.from_euler(jnp.zeros(4), "xyz"),
+    "angle": lambda: jq.angle(jnp.zeros(3)),
+    "angle_between": lambda: jq.angle_between(jnp.zeros(4), jnp.zeros(3)),
+    "slerp": lambda: jq.slerp(jnp.zeros(4), jnp.zeros(3), 0.5),
+    "mean": lambda: jq.mean(jnp.zeros((5, 3))),
+    "mean_flat": lambda: jq.mean(jnp.zeros(4)),
+    "mean_weights": lambda: jq.mean(jnp.zeros((5, 4)), jnp.ones(4)),
+    "align_vectors": lambda: jq.align_vectors(jnp.zeros((5, 3)), jnp.zeros((4, 3))),
+    "align_vectors_shape": lambda: jq.align_vectors(jnp.zeros((5, 4)), jnp.zeros((5, 4))),
+    "broadcast": lambda: jq.multiply(jnp.zeros((5, 4)), jnp.zeros((3, 4))),
+    "slerp_t": lambda: jq.slerp(jnp.zeros((5, 4)), jnp.zeros((5, 4)), jnp.zeros(3)),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_SHAPES))
+def test_bad_shape_raises_clear_error(case):
+    with pytest.raises(ValueError, match=r"argument|arguments|batch shapes") as err:
+        jax.jit(BAD_SHAPES[case])()  # raised while tracing, before anything runs
+    msg = str(err.value)
+    assert "(..., " in msg or "do not broadcast" in msg, msg
+
+
+def test_shape_error_names_the_argument_and_expected_shape():
+    with pytest.raises(ValueError, match=r"argument 'v' must be a 3-vector array shaped \(\.\.\., 3\), got shape \(7, 4\)"):
+        jq.rotate(jnp.zeros((7, 4)), jnp.zeros((7, 4)))
+    with pytest.raises(ValueError, match=r"argument 'm' must be a matrix array shaped \(\.\.\., 3, 3\), got shape \(3, 4\)"):
+        jq.from_matrix(jnp.zeros((3, 4)))
+
+
+@pytest.mark.parametrize("name", ["multiply", "to_matrix", "to_rotvec", "slerp", "to_euler", "rotate", "normalize"])
+def test_integer_input_raises_type_error(name):
+    qi = jnp.asarray([[1, 0, 0, 0]], jnp.int32)
+    call = {
+        "multiply": lambda: jq.multiply(qi, qi),
+        "to_matrix": lambda: jq.to_matrix(qi),
+        "to_rotvec": lambda: jq.to_rotvec(qi),
+        "slerp": lambda: jq.slerp(qi, qi, 0.5),
+        "to_euler": lambda: jq.to_euler(qi, "xyz"),
+        "rotate": lambda: jq.rotate(jnp.asarray([1.0, 0, 0, 0]), jnp.asarray([1, 2, 3])),
+        "normalize": lambda: jq.normalize(qi),
+    }[name]
+    with pytest.raises(TypeError, match="floating dtype"):
+        call()
+
+
+def test_python_lists_are_accepted():
+    assert_close(jq.to_matrix([1, 0, 0, 0]), np.eye(3), tol=0)
+    assert_close(jq.rotate([0.0, 1.0, 0.0, 0.0], [0.0, 1.0, 0.0]), [0.0, -1.0, 0.0], tol=1e-6)
+
+
+def test_every_public_name_is_in_the_contract():
+    covered = {n.split("_nearest")[0] for n in REGISTRY} | {"to_euler", "from_euler", "identity", "random"}
+    assert set(jq.__all__) <= covered | {n.rsplit("_", 1)[0] for n in REGISTRY}, set(jq.__all__) - covered
