@@ -257,10 +257,14 @@ def rotate(q: Float[Array, "*batch 4"], v: Float[Array, "*batch 3"]) -> Float[Ar
     return _rotate(q, v)
 
 
-def _canonicalize(q: Array) -> Array:
-    w, x, y, z = _split(q)
+def _canonical_sign(w, x, y, z) -> Array:
+    """+1 or -1: the sign that puts ``(w, x, y, z)`` in the canonical hemisphere."""
     flip = (w < 0) | ((w == 0) & ((x < 0) | ((x == 0) & ((y < 0) | ((y == 0) & (z < 0))))))
-    return jnp.where(flip[..., None], -q, q)
+    return jnp.where(flip, -1.0, 1.0).astype(w.dtype)
+
+
+def _canonicalize(q: Array) -> Array:
+    return q * _canonical_sign(*_split(q))[..., None]
 
 
 def canonicalize(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4"]:

@@ -15,7 +15,7 @@ from jax import Array
 from jaxtyping import Float
 
 from . import _checks, _safe
-from .algebra import _canonicalize
+from .algebra import _canonical_sign, _canonicalize
 
 __all__ = [
     "to_matrix",
@@ -134,14 +134,18 @@ def _from_matrix_shepperd(m: Array) -> Array:
     # entry is >= 1 for a rotation matrix (the four sum to 4), so the
     # normalisation never divides by a small number and every branch has
     # finite gradients.
-    best = jnp.argmax(jnp.stack(diag, axis=-1), axis=-1)
-    col = [jnp.zeros_like(diag[0]) for _ in range(4)]
-    for k, c in enumerate(_k_columns(diag, off)):
-        sel = best == k
-        col = [jnp.where(sel, ci, acc) for ci, acc in zip(c, col)]
-    q = jnp.stack(col, axis=-1)
-    q = q / jnp.sqrt(_safe.norm_sq(q))[..., None]
-    return _canonicalize(q)
+    d0, d1, d2, d3 = diag
+    dmax = jnp.maximum(jnp.maximum(d0, d1), jnp.maximum(d2, d3))
+    pick0 = d0 == dmax
+    pick1 = ~pick0 & (d1 == dmax)
+    pick2 = ~pick0 & ~pick1 & (d2 == dmax)
+    col = [
+        jnp.where(pick0, c0, jnp.where(pick1, c1, jnp.where(pick2, c2, c3)))
+        for c0, c1, c2, c3 in zip(*_k_columns(diag, off))
+    ]
+    # Normalise and fix the sign on the components, then stack once: one fused loop.
+    scale = jax.lax.rsqrt(sum(c * c for c in col)) * _canonical_sign(*col)
+    return jnp.stack([c * scale for c in col], axis=-1)
 
 
 def from_matrix(m: Float[Array, "*batch 3 3"], *, nearest: bool = False) -> Float[Array, "*batch 4"]:
