@@ -140,8 +140,9 @@ def euler_seq(seq: Any) -> str:
     return seq
 
 
-def frame(frame: Any) -> str:
-    """Validate a frame argument: ``"body"`` or ``"space"``."""
-    if frame not in ("body", "space"):
-        raise ValueError(f"argument 'frame' must be 'body' or 'space', got {frame!r}")
-    return frame
+def float_dtype(dtype: Any):
+    """Validate a ``dtype`` argument; ``None`` means JAX's default float dtype."""
+    dtype = jnp.asarray(0.0).dtype if dtype is None else jnp.dtype(dtype)
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise TypeError(f"argument 'dtype' must be a floating dtype, got {dtype}")
+    return dtype

@@ -116,9 +116,7 @@ def identity(shape: tuple[int, ...] | int = (), dtype: Any = None) -> Float[Arra
     """
     if isinstance(shape, int):
         shape = (shape,)
-    dtype = jnp.asarray(0.0).dtype if dtype is None else jnp.dtype(dtype)
-    if not jnp.issubdtype(dtype, jnp.floating):
-        raise TypeError(f"argument 'dtype' must be a floating dtype, got {dtype}")
+    dtype = _checks.float_dtype(dtype)
     return jnp.broadcast_to(jnp.asarray([1.0, 0.0, 0.0, 0.0], dtype=dtype), tuple(shape) + (4,))
 
 

@@ -132,8 +132,6 @@ def random(key: Array, shape: tuple[int, ...] | int = (), dtype: Any = None) -> 
     """
     if isinstance(shape, int):
         shape = (shape,)
-    dtype = jnp.asarray(0.0).dtype if dtype is None else jnp.dtype(dtype)
-    if not jnp.issubdtype(dtype, jnp.floating):
-        raise TypeError(f"argument 'dtype' must be a floating dtype, got {dtype}")
+    dtype = _checks.float_dtype(dtype)
     g = jax.random.normal(key, tuple(shape) + (4,), dtype=dtype)
     return g / jnp.sqrt(_safe.norm_sq(g))[..., None]
