@@ -67,30 +67,6 @@ def scalar_like(x: Any, name: str) -> Array:
     return as_float_array(x, name)
 
 
-def common_dtype(*arrays: Array):
-    """The dtype JAX's promotion rules give to ``arrays`` together."""
-    return jnp.result_type(*arrays)
-
-
-def broadcast_quat_and_scalar(q: Array, s: Array, q_name: str, s_name: str) -> tuple[Array, Array]:
-    """Broadcast ``q`` ``(..., 4)`` against a batch of scalars ``s`` ``(...)``.
-
-    Done explicitly so the library works under ``jax_numpy_rank_promotion="raise"``.
-    """
-    try:
-        batch = jnp.broadcast_shapes(q.shape[:-1], s.shape)
-    except ValueError:
-        raise ValueError(
-            f"batch shapes of '{q_name}' {tuple(q.shape)} (last axis 4) and "
-            f"'{s_name}' {tuple(s.shape)} do not broadcast"
-        ) from None
-    dtype = common_dtype(q, s)
-    return (
-        jnp.broadcast_to(q, batch + (q.shape[-1],)).astype(dtype),
-        jnp.broadcast_to(s, batch).astype(dtype),
-    )
-
-
 def broadcast_batch(arrays: list[Array], names: list[str], core_ndims: list[int]) -> list[Array]:
     """Broadcast the leading (batch) axes of several arrays, keeping their core axes.
 
@@ -104,7 +80,7 @@ def broadcast_batch(arrays: list[Array], names: list[str], core_ndims: list[int]
     except ValueError:
         desc = ", ".join(f"'{n}' {tuple(a.shape)}" for n, a in zip(names, arrays))
         raise ValueError(f"batch shapes do not broadcast: {desc}") from None
-    dtype = common_dtype(*arrays)
+    dtype = jnp.result_type(*arrays)
     return [
         jnp.broadcast_to(a, batch + a.shape[a.ndim - c :]).astype(dtype)
         for a, c in zip(arrays, core_ndims)

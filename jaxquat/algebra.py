@@ -182,7 +182,7 @@ def power(q: Float[Array, "*batch 4"], t: Float[Array, "*batch"] | float) -> Flo
     """
     q = _checks.quat(q)
     t = _checks.scalar_like(t, "t")
-    q, t = _checks.broadcast_quat_and_scalar(q, t, "q", "t")
+    q, t = _checks.broadcast_batch([q, t], ["q", "t"], [1, 0])
     return _exp(t[..., None] * _log(q))
 
 
