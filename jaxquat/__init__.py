@@ -8,12 +8,17 @@ axes and broadcast. Importing jaxquat changes no global JAX setting.
 Each module's ``__all__`` is its public surface; the package re-exports them all.
 """
 
-from . import algebra, conversions, euler, geometry, interpolate
+from . import algebra, conversions, dynamics, euler, geometry, inertia, interpolate, kinematics, skew, torques
 from .algebra import *  # noqa: F401,F403
 from .conversions import *  # noqa: F401,F403
+from .dynamics import *  # noqa: F401,F403
 from .euler import *  # noqa: F401,F403
 from .geometry import *  # noqa: F401,F403
+from .inertia import *  # noqa: F401,F403
 from .interpolate import *  # noqa: F401,F403
+from .kinematics import *  # noqa: F401,F403
+from .skew import *  # noqa: F401,F403
+from .torques import *  # noqa: F401,F403
 
 __version__ = "0.1.0"
 
@@ -23,4 +28,9 @@ __all__ = [
     *euler.__all__,
     *geometry.__all__,
     *interpolate.__all__,
+    *skew.__all__,
+    *kinematics.__all__,
+    *inertia.__all__,
+    *dynamics.__all__,
+    *torques.__all__,
 ]

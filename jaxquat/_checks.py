@@ -122,3 +122,22 @@ def float_dtype(dtype: Any):
     if not jnp.issubdtype(dtype, jnp.floating):
         raise TypeError(f"argument 'dtype' must be a floating dtype, got {dtype}")
     return dtype
+
+
+FRAMES = ("body", "space")
+
+
+def frame(value: Any, name: str = "frame") -> str:
+    """Validate a frame argument: ``"body"`` or ``"space"``."""
+    if not isinstance(value, str) or value not in FRAMES:
+        raise ValueError(f"argument '{name}' must be 'body' or 'space', got {value!r}")
+    return value
+
+
+def inertia(m: Any, name: str = "inertia") -> Array:
+    """Validate an inertia-tensor argument's type and shape: floating, ``(..., 3, 3)``.
+
+    Values are checked separately (:func:`jaxquat.check_inertia`), because they
+    are only known outside ``jit``.
+    """
+    return _check_trailing(as_float_array(m, name), name, (3, 3), "an inertia tensor array")

@@ -101,3 +101,48 @@ def central_difference_jacobian(f, x: np.ndarray, h: float = 1e-6) -> np.ndarray
         fm = np.asarray(f(jnp.asarray((flat - e).reshape(x.shape))))
         jac.reshape(f0.shape + (-1,))[..., i] = (fp - fm) / (2 * h)
     return jac
+
+
+# ---------------------------------------------------------------- smooth attitude curves
+# Kinematic relations are checked against autodiff: q(t) from a smooth rotation-vector
+# curve, its derivatives by jax.jacfwd in t. Each seed picks different coefficients.
+
+
+def curve_coefficients(seed: int, n: int = BATCH) -> np.ndarray:
+    """Per-element coefficients ``(n, 3, 3)``: rotvec_k(t) = c0 + c1 t + c2 sin(2 t + k)."""
+    return np.random.default_rng(seed + 17).normal(size=(n, 3, 3))
+
+
+def rotvec_curve(c, t):
+    k = jnp.broadcast_to(jnp.arange(3, dtype=c.dtype), c.shape[:-2] + (3,))
+    return c[..., 0, :] + c[..., 1, :] * t + c[..., 2, :] * jnp.sin(2 * t + k)
+
+
+def attitude_curve(c, t, scale=0.0):
+    """Unit-quaternion curve, times ``1 + 0.3 scale sin(3 t)`` (``scale = 1``: |q| varies)."""
+    import jaxquat as jq
+
+    return jq.from_rotvec(rotvec_curve(c, t)) * (1.0 + 0.3 * scale * jnp.sin(3.0 * t))
+
+
+def time_derivatives(f, t, order: int):
+    """``[f(t), f'(t), ..., f^(order)(t)]`` by nested forward-mode autodiff in scalar ``t``."""
+    out = [f(t)]
+    g = f
+    for _ in range(order):
+        g = jax.jacfwd(g)
+        out.append(g(t))
+    return out
+
+
+def random_inertias(seed: int, n: int = BATCH, dtype=None) -> np.ndarray:
+    """Physical full (non-diagonal) inertia tensors: random point clouds, ``(n, 3, 3)``."""
+    dtype = NP_DTYPE if dtype is None else dtype
+    rng = np.random.default_rng(seed + 5)
+    r = rng.normal(size=(n, 6, 3)) * rng.uniform(0.3, 2.0, (n, 1, 3))
+    r -= r.mean(axis=1, keepdims=True)
+    m = rng.uniform(0.5, 2.0, (n, 6))
+    eye = np.eye(3)
+    inertia = np.einsum("nk,nkij->nij", m, np.einsum("nk,ij->nkij", (r * r).sum(-1), eye) - np.einsum("nki,nkj->nkij", r, r))
+    inertia /= (np.trace(inertia, axis1=-2, axis2=-1) / 3.0)[:, None, None]  # O(1) entries
+    return inertia.astype(dtype)

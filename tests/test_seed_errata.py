@@ -117,3 +117,103 @@ def test_tasora_algorithm_1_as_printed():
     for A, o in zip(mats, ours):
         ref = algorithm_1(A)
         assert min(np.abs(ref - o).max(), np.abs(ref + o).max()) < 1e-12
+
+
+# ------------------------------------------------ Tasora (53): acceleration of a moving point
+
+
+def test_erratum_tasora_53_point_acceleration():
+    """p'' for a point moving in the body frame; both printed versions fail, the corrected one holds."""
+    r0 = jnp.asarray([0.4, -1.0, 0.7])
+
+    def p_local(s):
+        return jnp.concatenate([jnp.zeros(1), r0 * (1 + 0.5 * s) + jnp.sin(s) * r0[::-1]])
+
+    t = 0.7
+    q, qd, qdd = _curve(t), jax.jacfwd(_curve)(t), jax.jacfwd(jax.jacfwd(_curve))(t)
+    p, pd, pdd = p_local(t), jax.jacfwd(p_local)(t), jax.jacfwd(jax.jacfwd(p_local))(t)
+    truth = jax.jacfwd(jax.jacfwd(lambda s: M(M(_curve(s), p_local(s)), C(_curve(s)))))(t)
+
+    def tri(a, b, c):
+        return M(M(a, b), c)
+
+    printed_53 = tri(qdd, p, C(q)) + tri(q, pdd, C(q)) + tri(q, p, C(qdd)) + 2 * tri(qd, pd, C(q)) + 2 * tri(qd, pd, C(q)) + 2 * tri(q, pd, C(qd))
+    printed_table2 = tri(qdd, p, C(q)) + tri(q, pdd, C(q)) + tri(q, pd, C(qd)) + 2 * tri(qd, p, C(qd)) + 2 * tri(qd, pd, C(q)) + 2 * tri(q, pd, C(qd))
+    corrected = tri(qdd, p, C(q)) + tri(q, pdd, C(q)) + tri(q, p, C(qdd)) + 2 * tri(qd, pd, C(q)) + 2 * tri(qd, p, C(qd)) + 2 * tri(q, pd, C(qd))
+    assert np.abs(printed_53 - truth).max() > 0.1
+    assert np.abs(printed_table2 - truth).max() > 0.1
+    assert np.allclose(corrected, truth, atol=1e-14)
+    # and jaxquat.point_acceleration, which is its vector form
+    wl = jq.omega_from_qdot(q, qd)
+    al = jq.alpha_from_qddot(q, qd, qdd)
+    assert np.allclose(jq.point_acceleration(q, wl, al, p[1:], pd[1:], pdd[1:]), truth[1:], atol=1e-14)
+
+
+# ------------------------------------------------ Chou: the dots the transcription lost
+
+
+def _chou_state():
+    t = 0.7
+    q, qd, qdd = _curve(t), jax.jacfwd(_curve)(t), jax.jacfwd(jax.jacfwd(_curve))(t)
+    inertia = jnp.asarray([[2.0, 0.3, -0.1], [0.3, 3.0, 0.2], [-0.1, 0.2, 4.0]])
+    torque = jnp.asarray([0.3, -0.2, 0.5])
+    return q, qd, qdd, inertia, torque
+
+
+@pytest.mark.parametrize("frame", ["body", "space"])
+def test_erratum_chou_45_51_angular_velocity_matrix(frame):
+    """Printed '2 E E^T' is the identity times 2; the angular-velocity matrix needs one factor differentiated."""
+    q, qd, *_ = _chou_state()
+    e, ed = jq.rate_matrix(q, frame), jq.rate_matrix(qd, frame)
+    w = jq.omega_from_qdot(q, qd, frame)
+    assert np.allclose(2 * e @ e.T, 2 * np.eye(3), atol=1e-15)  # what the undotted print says
+    restored = 2 * ed @ e.T if frame == "space" else 2 * e @ ed.T  # (45): dE+ E+^T; (51): E- dE-^T
+    assert np.allclose(restored, jq.hat(w), atol=1e-14)
+
+
+@pytest.mark.parametrize("frame", ["body", "space"])
+def test_erratum_chou_75_third_term(frame):
+    """(75) as transcribed, '-2 E^T I^-1 (E)(E)^T I E pdot', reduces to -2 pdot: wrong. With
+    E dE^T (body) / dE E^T (space) restored it equals the equations of motion."""
+    q, qd, _, inertia, torque = _chou_state()
+    e, ed = jq.rate_matrix(q, frame), jq.rate_matrix(qd, frame)
+    i = inertia if frame == "body" else jq.rotate_inertia(q, inertia)
+    ii = jnp.linalg.inv(i)
+    head = 0.5 * e.T @ ii @ torque - (qd @ qd) * q
+    truth = jq.euler_parameter_acceleration(q, qd, inertia, torque, frame)
+    printed = head - 2 * e.T @ ii @ (e @ e.T) @ i @ e @ qd
+    middle = e @ ed.T if frame == "body" else ed @ e.T
+    restored = head - 2 * e.T @ ii @ middle @ i @ e @ qd
+    assert np.abs(printed - truth).max() > 0.1
+    assert np.allclose(restored, truth, atol=1e-14)
+
+
+@pytest.mark.parametrize("frame", ["body", "space"])
+def test_erratum_chou_72_four_space_form(frame):
+    """(72) as transcribed, 'pddot = 1/2 pbar Wdot - (pbar pbar^T) pdot', has pbar pbar^T = I.
+    Restored: the second factor is the matrix of pdot, i.e. -(pbar pdotbar^T) pdot = -|pdot|^2 p."""
+    q, qd, qdd, *_ = _chou_state()
+    mat = jq.right_matrix if frame == "space" else jq.left_matrix  # pbar (space), p-plus (body)
+    a4 = jnp.concatenate([jnp.zeros(1), jq.alpha_from_qddot(q, qd, qdd, frame)])
+    printed = 0.5 * mat(q) @ a4 - (mat(q) @ mat(q).T) @ qd
+    restored = 0.5 * mat(q) @ a4 - (mat(q) @ mat(qd).T) @ qd
+    assert np.abs(printed - qdd).max() > 0.1
+    assert np.allclose(restored, qdd, atol=1e-14)
+
+
+# ------------------------------------------------ Schwab (23): the constraint row's right-hand side
+
+
+def test_erratum_schwab_23_constraint_row():
+    """(23) prints four right-hand-side entries for five unknowns. With the fifth set to 0
+    (as an implementer reading it literally might), qddot breaks q.qddot = -|qdot|^2;
+    -2 qdot.qdot is right (the norm constraint (20) differentiated twice)."""
+    q, qd, _, inertia, torque = _chou_state()
+    lhs, rhs = jq.euler_parameter_augmented_system(q, qd, inertia, torque)
+    truth = jq.euler_parameter_acceleration(q, qd, inertia, torque)
+    zero_row = jnp.linalg.solve(lhs, rhs.at[4].set(0.0))
+    assert np.abs(zero_row[:4] - truth).max() > 0.1
+    corrected = jnp.linalg.solve(lhs, rhs)
+    assert np.allclose(rhs[4], -2 * qd @ qd, atol=0)
+    assert np.allclose(corrected[:4], truth, atol=1e-13)
+    assert np.isclose(corrected[4], jq.norm_constraint_multiplier(q, qd, inertia), atol=1e-13)  # (24)

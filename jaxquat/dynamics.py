@@ -1,0 +1,303 @@
+"""Rigid-body rotational dynamics: Euler's equations and the Euler-parameter equations of motion.
+
+Conventions. ``inertia`` is always the body-frame tensor (``(..., 3, 3)``, full
+symmetric; see :mod:`jaxquat.inertia`). Angular velocities, accelerations,
+torques and momenta are resolved in the frame named by ``frame`` (``"body"``
+or ``"space"``, as in :mod:`jaxquat.kinematics`), and results are returned in
+that same frame. ``q`` maps body to space and is assumed unit (Euler
+parameters); functions that take ``qdot`` assume ``q.qdot = 0``.
+
+Two formulations of the same motion, shown equal in ``tests/test_dynamics.py``:
+
+* Newton-Euler on ``(q, w)``: Euler's equations ``I dw/dt = M - w x I w``
+  ([S] eq. (19), [C] eqs. (62), (66)) plus ``qdot = 1/2 q (0, w)``.
+* The Euler-parameter equations on ``(q, qdot)``: Chou's closed form for
+  ``qddot`` ([C] eqs. (74)-(78)) and Schwab's augmented system with a
+  Lagrange multiplier for ``|q| = 1`` ([S] eqs. (20)-(25)).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jax import Array
+from jaxtyping import Float
+
+from . import _checks
+from .algebra import _conjugate, _multiply, _rotate
+from .inertia import _apply, _solve, _validated
+from .kinematics import _alpha_from_qddot, _omega_from_qdot, _pure, _qddot_from_alpha
+
+__all__ = [
+    "angular_momentum",
+    "kinetic_energy",
+    "angular_acceleration",
+    "inverse_dynamics",
+    "euler_parameter_acceleration",
+    "euler_parameter_torque",
+    "euler_parameter_mass_matrix",
+    "euler_parameter_augmented_system",
+    "norm_constraint_multiplier",
+    "generalized_force",
+    "torque_from_generalized_force",
+]
+
+
+def _args(q, vectors: dict, inertia, quats: dict | None = None):
+    """Validate and broadcast ``q``, 3-vectors, optional extra quaternions and the inertia."""
+    names = ["q", *(quats or {}), *vectors, "inertia"]
+    arrays = [_checks.quat(q, "q")]
+    arrays += [_checks.quat(v, n) for n, v in (quats or {}).items()]
+    arrays += [_checks.vec3(v, n) for n, v in vectors.items()]
+    arrays.append(_validated(inertia))
+    cores = [1] * (len(arrays) - 1) + [2]
+    return _checks.broadcast_batch(arrays, names, cores)
+
+
+def _torque_or_zero(torque, like) -> Array:
+    return jnp.zeros(jnp.shape(like)[:-1] + (3,), dtype=jnp.result_type(like)) if torque is None else torque
+
+
+def _to_body(q: Array, v: Array, frame: str) -> Array:
+    return v if frame == "body" else _rotate(_conjugate(q), v)
+
+
+def _from_body(q: Array, v: Array, frame: str) -> Array:
+    return v if frame == "body" else _rotate(q, v)
+
+
+def _euler_body(inertia: Array, w: Array, torque: Array) -> Array:
+    """``I^-1 (M - w x I w)``, all body frame."""
+    return _solve(inertia, torque - jnp.cross(w, _apply(inertia, w)))
+
+
+def angular_momentum(
+    q: Float[Array, "*batch 4"],
+    omega: Float[Array, "*batch 3"],
+    inertia: Float[Array, "*batch 3 3"],
+    frame: str = "body",
+) -> Float[Array, "*batch 3"]:
+    """Angular momentum about the centre of mass, resolved in ``frame``.
+
+    ``H_b = I w_b``; ``H_s = I0 w_s = A I A^T w_s`` ([C] eqs. (60)-(61):
+    ``H0 = 2 I0 E_space qdot``, the vector part of ``2 Ihat0 (qdot q*)``).
+    ``q`` is only used when ``frame="space"``.
+    """
+    frame = _checks.frame(frame)
+    q, omega, inertia = _args(q, {"omega": omega}, inertia)
+    h = _apply(inertia, _to_body(q, omega, frame))
+    return _from_body(q, h, frame)
+
+
+def kinetic_energy(
+    q: Float[Array, "*batch 4"],
+    omega: Float[Array, "*batch 3"],
+    inertia: Float[Array, "*batch 3 3"],
+    frame: str = "body",
+) -> Float[Array, "*batch"]:
+    """Rotational kinetic energy ``T = 1/2 w_b . I w_b = 1/2 w_s . I0 w_s``.
+
+    In Euler parameters ``T = 1/2 qdot^T (4 Q diag(0, I) Q^T) qdot`` ([S] eq.
+    (23)'s mass matrix), and ``2 T`` is Schwab's multiplier ([S] eq. (24)).
+    """
+    frame = _checks.frame(frame)
+    q, omega, inertia = _args(q, {"omega": omega}, inertia)
+    w = _to_body(q, omega, frame)
+    return 0.5 * jnp.sum(w * _apply(inertia, w), axis=-1)
+
+
+def angular_acceleration(
+    q: Float[Array, "*batch 4"],
+    omega: Float[Array, "*batch 3"],
+    inertia: Float[Array, "*batch 3 3"],
+    torque: Float[Array, "*batch 3"] | None = None,
+    frame: str = "body",
+) -> Float[Array, "*batch 3"]:
+    """Euler's equations solved for the angular acceleration.
+
+    Body: ``dw_b/dt = I^-1 (M_b - w_b x I w_b)`` ([S] eq. (19), [C] eq. (66)).
+    Space: ``dw_s/dt = I0^-1 (M_s - w_s x I0 w_s)`` with ``I0 = A I A^T`` ([C]
+    eq. (62), where ``dI0/dt`` of eq. (C4) supplies the gyroscopic term); equal to
+    ``A`` times the body result. ``torque=None`` is torque-free motion.
+    """
+    frame = _checks.frame(frame)
+    torque = _torque_or_zero(torque, omega)
+    q, omega, torque, inertia = _args(q, {"omega": omega, "torque": torque}, inertia)
+    w = _to_body(q, omega, frame)
+    m = _to_body(q, torque, frame)
+    return _from_body(q, _euler_body(inertia, w, m), frame)
+
+
+def inverse_dynamics(
+    q: Float[Array, "*batch 4"],
+    omega: Float[Array, "*batch 3"],
+    alpha: Float[Array, "*batch 3"],
+    inertia: Float[Array, "*batch 3 3"],
+    frame: str = "body",
+) -> Float[Array, "*batch 3"]:
+    """Torque that produces a given motion: ``M = I a + w x I w`` in the body frame ([S] eq. (19),
+    [C] eq. (66)); ``M_s = I0 a_s + w_s x I0 w_s`` in space ([C] eq. (62))."""
+    frame = _checks.frame(frame)
+    q, omega, alpha, inertia = _args(q, {"omega": omega, "alpha": alpha}, inertia)
+    w = _to_body(q, omega, frame)
+    a = _to_body(q, alpha, frame)
+    return _from_body(q, _apply(inertia, a) + jnp.cross(w, _apply(inertia, w)), frame)
+
+
+def euler_parameter_acceleration(
+    q: Float[Array, "*batch 4"],
+    qdot: Float[Array, "*batch 4"],
+    inertia: Float[Array, "*batch 3 3"],
+    torque: Float[Array, "*batch 3"] | None = None,
+    frame: str = "body",
+) -> Float[Array, "*batch 4"]:
+    """``qddot`` from the Euler-parameter equations of motion (Chou's closed form).
+
+    Body ([C] eq. (75), second row)::
+
+        qddot = 1/2 E^T I^-1 M_b - |qdot|^2 q - 2 E^T I^-1 (E dE^T/dt) I E qdot
+
+    with ``E`` the body :func:`jaxquat.rate_matrix` (Chou's E-minus). Space
+    (first row): the same with Chou's E-plus, ``I0 = A I A^T``, ``M_s``, and
+    ``(dE/dt) E^T`` in place of ``E dE^T/dt`` (see ``docs/seed-errata.md`` for the
+    dots the transcription lost). Evaluated as
+    ``qddot = 1/2 q (0, a_b) - |qdot|^2 q`` with ``w_b = 2 vec(q* qdot)`` and
+    ``a_b = I^-1 (M_b - w_b x I w_b)``, the same expression in quaternion
+    products. Equal to Schwab's augmented system ([S] eq. (23)) and to
+    Newton-Euler. ``torque`` is resolved in ``frame`` (``None``: torque-free).
+    The result satisfies ``q.qddot = -|qdot|^2``, the twice-differentiated norm
+    constraint.
+    """
+    frame = _checks.frame(frame)
+    torque = _torque_or_zero(torque, qdot)
+    q, qdot, torque, inertia = _args(q, {"torque": torque}, inertia, {"qdot": qdot})
+    w = _omega_from_qdot(q, qdot, "body")
+    a = _euler_body(inertia, w, _to_body(q, torque, frame))
+    return _qddot_from_alpha(q, qdot, a, "body")
+
+
+def euler_parameter_torque(
+    q: Float[Array, "*batch 4"],
+    qdot: Float[Array, "*batch 4"],
+    qddot: Float[Array, "*batch 4"],
+    inertia: Float[Array, "*batch 3 3"],
+    frame: str = "body",
+) -> Float[Array, "*batch 3"]:
+    """Torque from Euler parameters and their derivatives (Euler's equations in Euler parameters).
+
+    Space ([C] eq. (65)): ``M_s = 2 I0 E qddot + 4 (dE/dt) E^T I0 E qdot`` (E-plus).
+    Body ([C] eq. (69)): ``M_b = 2 I E qddot + 4 E (dE/dt)^T I E qdot`` (E-minus).
+    Evaluated as :func:`inverse_dynamics` of ``w = 2 vec(q* qdot)``,
+    ``a = 2 vec(q* qddot)`` (the inverse of :func:`euler_parameter_acceleration`).
+    """
+    frame = _checks.frame(frame)
+    q, qdot, qddot, inertia = _args(q, {}, inertia, {"qdot": qdot, "qddot": qddot})
+    w = _omega_from_qdot(q, qdot, "body")
+    a = _alpha_from_qddot(q, qdot, qddot, "body")
+    return _from_body(q, _apply(inertia, a) + jnp.cross(w, _apply(inertia, w)), frame)
+
+
+def _quat_inertia_product(q: Array, inertia: Array) -> Array:
+    """``Q diag(0, I) Q^T`` as ``(..., 4, 4)``, with ``Q`` the left-multiplication matrix of ``q``."""
+    # Q diag(0, I) Q^T = E^T I E with E = lower three rows of Q^T (the body rate matrix).
+    w, v = q[..., 0], q[..., 1:]
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    e = jnp.stack(
+        [jnp.stack([-x, w, z, -y], -1), jnp.stack([-y, -z, w, x], -1), jnp.stack([-z, y, -x, w], -1)], -2
+    )
+    return jnp.swapaxes(e, -1, -2) @ inertia @ e
+
+
+def euler_parameter_mass_matrix(
+    q: Float[Array, "*batch 4"], inertia: Float[Array, "*batch 3 3"]
+) -> Float[Array, "*batch 4 4"]:
+    """Schwab's 4x4 mass matrix ``4 Q diag(0, I) Q^T`` ([S] eq. (23), upper-left block).
+
+    ``1/2 qdot^T M qdot`` is the kinetic energy. ``M`` is singular (``M q = 0``:
+    rescaling ``q`` is not a motion); the norm constraint row of
+    :func:`euler_parameter_augmented_system` makes the system solvable.
+    """
+    q, inertia = _args(q, {}, inertia)
+    return 4.0 * _quat_inertia_product(q, inertia)
+
+
+def generalized_force(
+    q: Float[Array, "*batch 4"], torque: Float[Array, "*batch 3"], frame: str = "body"
+) -> Float[Array, "*batch 4"]:
+    """Torque -> generalised force dual to the Euler parameters, [S] eq. (25).
+
+    ``f = 2 Q (0, M_b) = 2 q (0, M_b)`` (body) or ``f = 2 Q-bar (0, M_s) = 2 (0, M_s) q``
+    (space). Virtual power: ``f . dq = M_b . dw_b`` for every ``dq``, where
+    ``dw_b = 2 vec(q* dq)`` (unit ``q``).
+    """
+    frame = _checks.frame(frame)
+    q = _checks.quat(q)
+    torque = _checks.vec3(torque, "torque")
+    q, torque = _checks.broadcast_batch([q, torque], ["q", "torque"], [1, 1])
+    m = _pure(torque)
+    return 2.0 * (_multiply(q, m) if frame == "body" else _multiply(m, q))
+
+
+def torque_from_generalized_force(
+    q: Float[Array, "*batch 4"], force: Float[Array, "*batch 4"], frame: str = "body"
+) -> Float[Array, "*batch 3"]:
+    """Generalised Euler-parameter force -> torque: ``M_b = 1/2 vec(q* f)``, ``M_s = 1/2 vec(f q*)``.
+
+    The inverse of :func:`generalized_force` (unit ``q``). The component of ``f``
+    along ``q`` (``q.f``, the force on the norm constraint) does no work on a
+    rotation and is discarded.
+    """
+    frame = _checks.frame(frame)
+    q = _checks.quat(q)
+    force = _checks.quat(force, "force")
+    q, force = _checks.broadcast_batch([q, force], ["q", "force"], [1, 1])
+    prod = _multiply(_conjugate(q), force) if frame == "body" else _multiply(force, _conjugate(q))
+    return 0.5 * prod[..., 1:]
+
+
+def euler_parameter_augmented_system(
+    q: Float[Array, "*batch 4"],
+    qdot: Float[Array, "*batch 4"],
+    inertia: Float[Array, "*batch 3 3"],
+    torque: Float[Array, "*batch 3"] | None = None,
+    frame: str = "body",
+) -> tuple[Float[Array, "*batch 5 5"], Float[Array, "*batch 5"]]:
+    """Schwab's augmented Euler-parameter equations of motion, [S] eq. (23): ``(lhs, rhs)``.
+
+    ::
+
+        [ 4 Q J Q^T   2 q ] [ qddot  ]   [ f + 8 Qdot J Qdot^T q ]
+        [ 2 q^T       0   ] [ lambda ] = [ -2 qdot.qdot          ]
+
+    with ``J = diag(0, I)``, ``Q`` = :func:`jaxquat.left_matrix` of ``q``,
+    ``f`` = :func:`generalized_force` of ``torque`` (resolved in ``frame``). The
+    last row is the norm constraint differentiated twice; the transcription
+    prints no right-hand side for it (``docs/seed-errata.md``).
+    ``jnp.linalg.solve(lhs, rhs)`` gives ``(qddot, lambda)`` with ``lambda =``
+    :func:`norm_constraint_multiplier` ([S] eq. (24)) and ``qddot`` equal to
+    :func:`euler_parameter_acceleration`.
+    """
+    frame = _checks.frame(frame)
+    torque = _torque_or_zero(torque, qdot)
+    q, qdot, torque, inertia = _args(q, {"torque": torque}, inertia, {"qdot": qdot})
+    mass = 4.0 * _quat_inertia_product(q, inertia)
+    gyro = 8.0 * _quat_inertia_product(qdot, inertia) @ q[..., None]
+    m = _pure(_to_body(q, torque, frame))
+    top_rhs = 2.0 * _multiply(q, m) + gyro[..., 0]
+    rhs = jnp.concatenate([top_rhs, -2.0 * jnp.sum(qdot * qdot, -1, keepdims=True)], axis=-1)
+    col = 2.0 * q[..., :, None]
+    upper = jnp.concatenate([mass, col], axis=-1)
+    lower = jnp.concatenate([2.0 * q, jnp.zeros_like(q[..., :1])], axis=-1)[..., None, :]
+    return jnp.concatenate([upper, lower], axis=-2), rhs
+
+
+def norm_constraint_multiplier(
+    q: Float[Array, "*batch 4"], qdot: Float[Array, "*batch 4"], inertia: Float[Array, "*batch 3 3"]
+) -> Float[Array, "*batch"]:
+    """Schwab's Lagrange multiplier of the norm constraint, [S] eq. (24).
+
+    ``lambda = 4 q^T Qdot diag(0, I) Qdot^T q = w_b . I w_b``: twice the
+    rotational kinetic energy.
+    """
+    q, qdot, inertia = _args(q, {}, inertia, {"qdot": qdot})
+    w = _omega_from_qdot(q, qdot, "body")
+    return jnp.sum(w * _apply(inertia, w), axis=-1)

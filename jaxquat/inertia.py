@@ -1,0 +1,209 @@
+"""Inertia tensors: construction, frame change, Chou's 4x4 inertia, and validity checks.
+
+An inertia tensor here is a full symmetric 3x3 matrix ``(..., 3, 3)`` about the
+centre of mass (principal moments are the special case ``diag(I1, I2, I3)``).
+Physical tensors are symmetric positive definite and satisfy the triangle
+inequality ``I1 <= I2 + I3`` (and permutations) of their principal moments,
+which is the same as ``tr(I)/2 U - I = integral r r^T dm`` being positive
+semidefinite ([C] Appendix B, eq. (B3)).
+
+Checks: :func:`check_inertia` raises a clear ``ValueError`` on concrete
+(non-traced) values; :func:`is_valid_inertia` returns a boolean array and works
+inside ``jit`` (use it with ``jnp.where``, ``jax.experimental.checkify`` or
+``equinox.error_if``). The dynamics functions check their ``inertia`` argument's
+values whenever it is concrete (eager calls), and its shape always.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jaxtyping import Bool, Float
+
+from . import _checks
+from .conversions import _to_matrix
+from .skew import _hat
+
+__all__ = [
+    "inertia_from_points",
+    "rotate_inertia",
+    "inertia_rate",
+    "quaternion_inertia",
+    "is_valid_inertia",
+    "check_inertia",
+]
+
+
+def inertia_from_points(
+    positions: Float[Array, "*batch n 3"], masses: Float[Array, "*batch n"]
+) -> Float[Array, "*batch 3 3"]:
+    """Inertia tensor of point masses about the origin: ``sum_k m_k (|r_k|^2 U - r_k r_k^T)``.
+
+    [C] eq. (B1) with the integral as a sum (off-diagonal entries are minus the
+    products of inertia). Pass positions relative to the centre of mass to get
+    the tensor the dynamics functions expect.
+    """
+    r = _checks.vec3(positions, "positions")
+    if r.ndim < 2:
+        raise ValueError(f"argument 'positions' must be shaped (..., n, 3), got shape {tuple(r.shape)}")
+    m = _checks.scalar_like(masses, "masses")
+    if m.shape[-1:] != r.shape[-2:-1]:
+        raise ValueError(
+            f"argument 'masses' must be shaped (..., n) with n = {r.shape[-2]} (one per position), "
+            f"got shape {tuple(m.shape)}"
+        )
+    r, m = _checks.broadcast_batch([r, m], ["positions", "masses"], [2, 1])
+    outer = r[..., :, None] * r[..., None, :]
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=r.dtype), outer.shape)
+    per_point = jnp.sum(r * r, -1)[..., None, None] * eye - outer
+    return jnp.sum(m[..., None, None] * per_point, axis=-3)
+
+
+def rotate_inertia(q: Float[Array, "*batch 4"], inertia: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3 3"]:
+    """Body-to-space transform of an inertia tensor: ``I0 = A I A^T`` with ``A = to_matrix(q)``, [C] eq. (C1).
+
+    ``rotate_inertia(conjugate(q), I0)`` goes back. Assumes ``|q| = 1``.
+    """
+    q = _checks.quat(q)
+    inertia = _checks.inertia(inertia)
+    q, inertia = _checks.broadcast_batch([q, inertia], ["q", "inertia"], [1, 2])
+    a = _to_matrix(q)
+    return a @ inertia @ jnp.swapaxes(a, -1, -2)
+
+
+def inertia_rate(
+    inertia_space: Float[Array, "*batch 3 3"], omega_space: Float[Array, "*batch 3"]
+) -> Float[Array, "*batch 3 3"]:
+    """Time derivative of the space-frame inertia of a rigid body: ``dI0/dt = hat(w) I0 - I0 hat(w)``, [C] eq. (C4)."""
+    i0 = _checks.inertia(inertia_space, "inertia_space")
+    w = _checks.vec3(omega_space, "omega_space")
+    i0, w = _checks.broadcast_batch([i0, w], ["inertia_space", "omega_space"], [2, 1])
+    wh = _hat(w)
+    return wh @ i0 - i0 @ wh
+
+
+def quaternion_inertia(inertia: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 4 4"]:
+    """Chou's inertia in four-space, ``[[k, 0], [0, I]]`` with ``k = tr(I)/2``, [C] eqs. (B4)-(B5).
+
+    ``k = integral |r|^2 dm`` ([C] eq. (B3)) is the (0,0) entry of
+    ``integral (r^T r U - r r^T) dm`` for the pure quaternion ``r = (0, r)``
+    ([C] eq. (B2)). It multiplies the scalar part of the four-space angular
+    velocity, which is zero, so ``quaternion_inertia(I) @ (0, w) = (0, I w)``
+    ([C] eqs. (60)-(61)); its role is to make the four-space matrix invertible.
+    """
+    inertia = _checks.inertia(inertia)
+    k = 0.5 * jnp.trace(inertia, axis1=-2, axis2=-1)
+    top = jnp.concatenate([k[..., None], jnp.zeros_like(inertia[..., 0, :])], axis=-1)
+    bottom = jnp.concatenate([jnp.zeros_like(inertia[..., :, :1]), inertia], axis=-1)
+    return jnp.concatenate([top[..., None, :], bottom], axis=-2)
+
+
+def _default_rtol(dtype) -> float:
+    return float(np.sqrt(np.finfo(np.dtype(dtype)).eps)) if dtype != jnp.bfloat16 else 0.0884
+
+
+def _moments(inertia: Array) -> Array:
+    """Principal moments (ascending) of the symmetric part, in float32 or wider (no half-precision eigh)."""
+    work = inertia if jnp.finfo(inertia.dtype).bits >= 32 else inertia.astype(jnp.float32)
+    return jnp.linalg.eigvalsh(0.5 * (work + jnp.swapaxes(work, -1, -2)))
+
+
+def is_valid_inertia(
+    inertia: Float[Array, "*batch 3 3"], rtol: float | None = None
+) -> Bool[Array, "*batch"]:
+    """Whether each tensor is a physical inertia: finite, symmetric, positive definite, triangle inequality.
+
+    With ``s`` the largest absolute entry and ``I1 <= I2 <= I3`` the principal
+    moments: ``|I - I^T| <= rtol s``, ``I1 > rtol I3`` and
+    ``I3 <= (I1 + I2)(1 + rtol)``. ``rtol`` defaults to ``sqrt(eps)`` of the dtype
+    (1.5e-8 in float64, 3.5e-4 in float32). Works inside ``jit``/``vmap``; e.g.
+    ``checkify.check(jnp.all(is_valid_inertia(I)), "bad inertia")``.
+    """
+    inertia = _checks.inertia(inertia)
+    rtol = _default_rtol(inertia.dtype) if rtol is None else rtol
+    finite = jnp.all(jnp.isfinite(inertia), axis=(-2, -1))
+    clean = jnp.where(finite[..., None, None], inertia, jnp.broadcast_to(jnp.eye(3, dtype=inertia.dtype), inertia.shape))
+    scale = jnp.max(jnp.abs(clean), axis=(-2, -1))
+    asym = jnp.max(jnp.abs(clean - jnp.swapaxes(clean, -1, -2)), axis=(-2, -1))
+    lam = _moments(clean)
+    lo, mid, hi = lam[..., 0], lam[..., 1], lam[..., 2]
+    ok = finite & (asym <= rtol * scale) & (lo > rtol * hi) & (hi <= (lo + mid) * (1 + rtol))
+    return ok
+
+
+def check_inertia(inertia: Any, name: str = "inertia", rtol: float | None = None) -> Array:
+    """Raise ``ValueError`` unless every tensor in ``inertia`` is physical; return it unchanged.
+
+    The message names the argument, the first offending tensor's batch index and
+    the failed condition (not finite, not symmetric, not positive definite, or
+    the triangle inequality ``I3 <= I1 + I2``), with its principal moments.
+    Needs concrete values: inside ``jit`` it raises ``TypeError`` pointing to
+    :func:`is_valid_inertia`.
+    """
+    arr = _checks.inertia(inertia, name)
+    if isinstance(arr, jax.core.Tracer):
+        raise TypeError(
+            f"check_inertia needs concrete values but argument '{name}' is traced (inside jit, vmap or grad); "
+            "use jaxquat.is_valid_inertia there"
+        )
+    rtol = _default_rtol(arr.dtype) if rtol is None else rtol
+    with jax.ensure_compile_time_eval():  # concrete even when closed over inside a jit trace
+        valid = np.asarray(is_valid_inertia(arr, rtol))
+    if valid.all():
+        return arr
+    idx = tuple(int(i) for i in np.argwhere(~valid)[0]) if valid.ndim else ()
+    m = np.asarray(arr, dtype=np.float64)[idx]
+    where = f" at batch index {idx}" if idx else ""
+    if not np.all(np.isfinite(m)):
+        raise ValueError(f"argument '{name}'{where} has non-finite entries: {m.tolist()}")
+    asym = np.abs(m - m.T).max()
+    if asym > rtol * np.abs(m).max():
+        raise ValueError(
+            f"argument '{name}'{where} is not symmetric: max |I - I^T| = {asym:.3g} "
+            f"(largest entry {np.abs(m).max():.3g}); an inertia tensor is a symmetric 3x3 matrix"
+        )
+    lam = np.linalg.eigvalsh(0.5 * (m + m.T))
+    if lam[0] <= rtol * lam[2]:
+        raise ValueError(
+            f"argument '{name}'{where} is not positive definite (singular or negative): principal "
+            f"moments {lam.tolist()}"
+        )
+    raise ValueError(
+        f"argument '{name}'{where} violates the triangle inequality: largest principal moment "
+        f"{lam[2]:.6g} exceeds the sum of the other two {lam[0]:.6g} + {lam[1]:.6g} "
+        "(no mass distribution has this inertia)"
+    )
+
+
+def _validated(inertia: Any, name: str = "inertia") -> Array:
+    """Shape check always; value check when the values are concrete (eager calls)."""
+    arr = _checks.inertia(inertia, name)
+    if not isinstance(arr, jax.core.Tracer):
+        check_inertia(arr, name)
+    return arr
+
+
+def _solve(inertia: Array, b: Array) -> Array:
+    """``I^-1 b`` for symmetric ``I`` by the adjugate (element-wise, so it fuses; no LAPACK call)."""
+    m00, m01, m02 = inertia[..., 0, 0], inertia[..., 0, 1], inertia[..., 0, 2]
+    m11, m12, m22 = inertia[..., 1, 1], inertia[..., 1, 2], inertia[..., 2, 2]
+    c00 = m11 * m22 - m12 * m12
+    c01 = m02 * m12 - m01 * m22
+    c02 = m01 * m12 - m02 * m11
+    c11 = m00 * m22 - m02 * m02
+    c12 = m01 * m02 - m00 * m12
+    c22 = m00 * m11 - m01 * m01
+    det = m00 * c00 + m01 * c01 + m02 * c02
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return jnp.stack(
+        [c00 * b0 + c01 * b1 + c02 * b2, c01 * b0 + c11 * b1 + c12 * b2, c02 * b0 + c12 * b1 + c22 * b2], -1
+    ) / det[..., None]
+
+
+def _apply(inertia: Array, w: Array) -> Array:
+    """``I w`` without a batched matmul."""
+    return jnp.sum(inertia * w[..., None, :], axis=-1)

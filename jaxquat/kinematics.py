@@ -1,0 +1,292 @@
+"""Rotational kinematics in Euler parameters: angular velocity and acceleration <-> quaternion rates.
+
+Frames. ``frame="body"`` means a vector resolved in the body-fixed frame
+(Chou's superscript ``i``, Schwab's primed ``w'``, Tasora's ``w_l``);
+``frame="space"`` means resolved in the inertial frame (Chou's superscript ``0``,
+Schwab's unprimed ``w``, Tasora's ``w_o``). ``q`` maps body to space:
+``v_space = rotate(q, v_body)``.
+
+The four binding relations, with ``(0, w)`` the pure quaternion of ``w``::
+
+    body:   qdot = 1/2 q (0, w_b)        w_b = 2 vec(q* qdot)
+    space:  qdot = 1/2 (0, w_s) q        w_s = 2 vec(qdot q*)
+    body:   qddot = 1/2 q (0, a_b) - |qdot|^2 q       a_b = 2 vec(q* qddot)
+    space:  qddot = 1/2 (0, a_s) q - |qdot|^2 q       a_s = 2 vec(qddot q*)
+
+(the forms shown are for ``|q| = 1``; the functions below keep them exact for any
+non-zero ``q``, see each docstring). The ``-|qdot|^2 q`` term is the
+twice-differentiated norm constraint ``q.qddot + |qdot|^2 = 0`` ([S] eq. (17)).
+
+Source documents: [C] Chou (1992), [S] Schwab (2002), [T] Tasora (2016);
+``docs/equations.md`` maps every equation to its function and test.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jax import Array
+from jaxtyping import Float
+
+from . import _checks
+from .algebra import _conjugate, _multiply, _rotate
+from .conversions import _to_matrix
+from .skew import _hat
+
+__all__ = [
+    "rate_matrix",
+    "qdot_from_omega",
+    "omega_from_qdot",
+    "qddot_from_alpha",
+    "alpha_from_qddot",
+    "matrix_rate",
+    "matrix_acceleration",
+    "point_velocity",
+    "point_acceleration",
+]
+
+
+def _pure(v: Array) -> Array:
+    """The pure quaternion ``(0, v)``."""
+    return jnp.concatenate([jnp.zeros_like(v[..., :1]), v], axis=-1)
+
+
+def _dot(a: Array, b: Array) -> Array:
+    return jnp.sum(a * b, axis=-1)
+
+
+def _vec_rate(q: Array, qdot: Array, frame: str) -> Array:
+    """``vec(q* qdot)`` (body) or ``vec(qdot q*)`` (space): half the angular velocity times ``|q|^2``."""
+    prod = _multiply(_conjugate(q), qdot) if frame == "body" else _multiply(qdot, _conjugate(q))
+    return prod[..., 1:]
+
+
+def _qdot_from_omega(q: Array, omega: Array, frame: str) -> Array:
+    w = _pure(omega)
+    return 0.5 * (_multiply(q, w) if frame == "body" else _multiply(w, q))
+
+
+def _omega_from_qdot(q: Array, qdot: Array, frame: str) -> Array:
+    return 2.0 * _vec_rate(q, qdot, frame) / _dot(q, q)[..., None]
+
+
+def _qddot_from_alpha(q: Array, qdot: Array, alpha: Array, frame: str) -> Array:
+    nsq = _dot(q, q)[..., None]
+    rate = _vec_rate(q, qdot, frame)
+    # s = q* qddot (body) or qddot q* (space), solved from the alpha relation;
+    # its scalar part q.qddot = -|qdot|^2 keeps d^2|q|^2/dt^2 = 0.
+    s_vec = 0.5 * nsq * alpha + 2.0 * _dot(q, qdot)[..., None] * rate / nsq
+    s = jnp.concatenate([-_dot(qdot, qdot)[..., None], s_vec], axis=-1)
+    return (_multiply(q, s) if frame == "body" else _multiply(s, q)) / nsq
+
+
+def _alpha_from_qddot(q: Array, qdot: Array, qddot: Array, frame: str) -> Array:
+    nsq = _dot(q, q)[..., None]
+    acc = _vec_rate(q, qddot, frame)
+    rate = _vec_rate(q, qdot, frame)
+    return 2.0 * acc / nsq - 4.0 * _dot(q, qdot)[..., None] * rate / (nsq * nsq)
+
+
+def _prepare(arrays, names, kinds):
+    checked = [(_checks.quat if k == 4 else _checks.vec3)(a, n) for a, n, k in zip(arrays, names, kinds)]
+    return _checks.broadcast_batch(checked, list(names), [1] * len(checked))
+
+
+def rate_matrix(q: Float[Array, "*batch 4"], frame: str = "body") -> Float[Array, "*batch 3 4"]:
+    """The 3x4 matrix ``E`` with ``w = 2 E qdot`` and ``qdot = 1/2 E^T w`` (unit ``q``).
+
+    ``frame="body"``: ``E = [-v, q0 I - v~]`` (Chou's E-minus [C] eq. (25),
+    Tasora's ``[F(q*)+]`` [T] eqs. (42a), (48b), the lower three rows of
+    Schwab's ``Q^T`` [S] eq. (15)). ``frame="space"``: ``E = [-v, q0 I + v~]``
+    (Chou's E-plus [C] eq. (26), Tasora's ``[F(q*)-]`` [T] eqs. (43a), (48a),
+    Schwab's ``Q-bar^T`` [S] eq. (13)). Here ``q = (q0, v)``.
+
+    For unit ``q``: ``E E^T = I``, ``E^T E = I - q q^T``, ``E q = 0``
+    ([C] (A4)-(A5), [T] (38a)-(38b)); ``to_matrix(q) = E_space E_body^T``
+    ([C] eq. (34), [T] eq. (29a)); ``hat(w_b) = 2 E_body dE_body^T/dt`` and
+    ``hat(w_s) = 2 (dE_space/dt) E_space^T`` ([C] eqs. (45), (51)).
+    """
+    frame = _checks.frame(frame)
+    q = _checks.quat(q)
+    w, v = q[..., 0], q[..., 1:]
+    skew = _hat(v)
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=q.dtype), skew.shape)
+    block = w[..., None, None] * eye + (skew if frame == "space" else -skew)
+    return jnp.concatenate([-v[..., :, None], block], axis=-1)
+
+
+def qdot_from_omega(
+    q: Float[Array, "*batch 4"], omega: Float[Array, "*batch 3"], frame: str = "body"
+) -> Float[Array, "*batch 4"]:
+    """Quaternion rate from angular velocity.
+
+    ``frame="body"``: ``qdot = 1/2 q (0, w_b)`` ([S] eq. (16), [T] eq. (47b),
+    [C] eqs. (70)-(71) second rows). ``frame="space"``: ``qdot = 1/2 (0, w_s) q``
+    ([S] eq. (14), [T] eq. (46), [C] eqs. (70)-(71) first rows).
+
+    Any ``q``: the rate is orthogonal to ``q`` (``|q|`` stays constant), and
+    ``omega_from_qdot(q, qdot_from_omega(q, w)) == w`` for every non-zero ``q``.
+    """
+    frame = _checks.frame(frame)
+    q, omega = _prepare([q, omega], ["q", "omega"], [4, 3])
+    return _qdot_from_omega(q, omega, frame)
+
+
+def omega_from_qdot(
+    q: Float[Array, "*batch 4"], qdot: Float[Array, "*batch 4"], frame: str = "body"
+) -> Float[Array, "*batch 3"]:
+    """Angular velocity from the quaternion rate.
+
+    ``frame="body"``: ``(0, w_b) = 2 q* qdot`` ([S] eq. (15), [T] eq. (47a),
+    [C] eqs. (49)-(50)). ``frame="space"``: ``(0, w_s) = 2 qdot q*`` ([S] eq.
+    (13), [T] eq. (45), [C] eqs. (43)-(44)).
+
+    Exact for any non-zero ``q``: the result is divided by ``|q|^2`` and the
+    scalar part (``2 q.qdot``, the norm rate) is dropped, so it is the angular
+    velocity of the rotation ``q/|q|`` even when an integrator has let ``|q|``
+    drift. For unit ``q`` it is exactly the printed formula.
+    """
+    frame = _checks.frame(frame)
+    q, qdot = _prepare([q, qdot], ["q", "qdot"], [4, 4])
+    return _omega_from_qdot(q, qdot, frame)
+
+
+def qddot_from_alpha(
+    q: Float[Array, "*batch 4"],
+    qdot: Float[Array, "*batch 4"],
+    alpha: Float[Array, "*batch 3"],
+    frame: str = "body",
+) -> Float[Array, "*batch 4"]:
+    """Quaternion second derivative from angular acceleration.
+
+    For unit ``q`` with ``q.qdot = 0``:
+    ``frame="body"``: ``qddot = 1/2 q (0, a_b) - |qdot|^2 q`` (inverse of [S] eq.
+    (18), [C] eq. (73) second row; equal to [T] eq. (49b)
+    ``1/2 qdot (0, w_b) + 1/2 q (0, a_b)``);
+    ``frame="space"``: ``qddot = 1/2 (0, a_s) q - |qdot|^2 q`` (inverse of [S] eq.
+    (17), [C] eq. (73) first row; equal to [T] eq. (49a)).
+
+    General non-zero ``q``: returns ``q s / |q|^2`` (body) or ``s q / |q|^2``
+    (space) with ``s = (-|qdot|^2, |q|^2 a / 2 + 2 (q.qdot) vec(q* qdot) / |q|^2)``
+    (``qdot q*`` in space), so that ``alpha_from_qddot`` of the result returns
+    ``alpha`` exactly and ``d^2|q|^2/dt^2 = 0`` (the norm rate is not accelerated).
+    """
+    frame = _checks.frame(frame)
+    q, qdot, alpha = _prepare([q, qdot, alpha], ["q", "qdot", "alpha"], [4, 4, 3])
+    return _qddot_from_alpha(q, qdot, alpha, frame)
+
+
+def alpha_from_qddot(
+    q: Float[Array, "*batch 4"],
+    qdot: Float[Array, "*batch 4"],
+    qddot: Float[Array, "*batch 4"],
+    frame: str = "body",
+) -> Float[Array, "*batch 3"]:
+    """Angular acceleration from the quaternion's first and second derivatives.
+
+    For unit ``q``: ``(0, a_b) = 2 q* qddot + 2 qdot* qdot - 2 (|qdot|^2, 0)``,
+    i.e. ``a_b = 2 vec(q* qddot)`` ([S] eq. (18), [T] eq. (50b), [C] eqs.
+    (57)-(58)); ``a_s = 2 vec(qddot q*)`` ([S] eq. (17), [T] eq. (50a), [C] eqs.
+    (55)-(56)). The scalar part of ``2 q* qddot`` is ``-2|qdot|^2``: that is the
+    ``|qdot|^2`` term of [S] (17)-(18).
+
+    General non-zero ``q``: the exact time derivative of :func:`omega_from_qdot`,
+    ``a = 2 vec(q* qddot)/|q|^2 - 4 (q.qdot) vec(q* qdot)/|q|^4`` (body; ``qddot q*``
+    and ``qdot q*`` in space), the angular acceleration of ``q/|q|``.
+    """
+    frame = _checks.frame(frame)
+    q, qdot, qddot = _prepare([q, qdot, qddot], ["q", "qdot", "qddot"], [4, 4, 4])
+    return _alpha_from_qddot(q, qdot, qddot, frame)
+
+
+def _body_vectors(q: Array, vectors: list[Array], frame: str) -> list[Array]:
+    """Resolve space-frame vectors in the body frame (unit ``q``); body-frame ones pass through."""
+    if frame == "body":
+        return vectors
+    qc = _conjugate(q)
+    return [_rotate(qc, v) for v in vectors]
+
+
+def matrix_rate(
+    q: Float[Array, "*batch 4"], omega: Float[Array, "*batch 3"], frame: str = "body"
+) -> Float[Array, "*batch 3 3"]:
+    """Time derivative of the rotation matrix (Poisson's equation).
+
+    ``dA/dt = A hat(w_b)`` (``frame="body"``, [T] eq. (37c), [C] eq. (52)) or
+    ``dA/dt = hat(w_s) A`` (``frame="space"``, [T] eq. (37d), [C] eq. (46)),
+    with ``A = to_matrix(q)``. Assumes ``|q| = 1`` (as :func:`jaxquat.to_matrix`).
+    """
+    frame = _checks.frame(frame)
+    q, omega = _prepare([q, omega], ["q", "omega"], [4, 3])
+    a = _to_matrix(q)
+    return a @ _hat(omega) if frame == "body" else _hat(omega) @ a
+
+
+def matrix_acceleration(
+    q: Float[Array, "*batch 4"],
+    omega: Float[Array, "*batch 3"],
+    alpha: Float[Array, "*batch 3"],
+    frame: str = "body",
+) -> Float[Array, "*batch 3 3"]:
+    """Second time derivative of the rotation matrix.
+
+    ``d2A/dt2 = A (hat(w_b) hat(w_b) + hat(a_b))`` (body; [T] Table 2, whose
+    printed ``[A][w~][w~] + [A][a~]`` this is) or
+    ``(hat(w_s) hat(w_s) + hat(a_s)) A`` (space). Assumes ``|q| = 1``.
+    """
+    frame = _checks.frame(frame)
+    q, omega, alpha = _prepare([q, omega, alpha], ["q", "omega", "alpha"], [4, 3, 3])
+    a = _to_matrix(q)
+    w = _hat(omega)
+    k = w @ w + _hat(alpha)
+    return a @ k if frame == "body" else k @ a
+
+
+def point_velocity(
+    q: Float[Array, "*batch 4"],
+    omega: Float[Array, "*batch 3"],
+    r: Float[Array, "*batch 3"],
+    r_dot: Float[Array, "*batch 3"] | None = None,
+    frame: str = "body",
+) -> Float[Array, "*batch 3"]:
+    """Space-frame velocity of a point with body coordinates ``r`` (relative velocity ``r_dot``).
+
+    ``v = A (w_b x r + r_dot) = w_s x (A r) + A r_dot``: the vector form of [T]
+    eq. (33) ``(0, v) = qdot (0,r) q* + q (0,r) qdot* + q (0,r_dot) q*``
+    and of [C] eq. (41). ``omega`` is resolved in ``frame``; ``r`` and ``r_dot``
+    in the body frame (``r_dot`` defaults to 0, a body-fixed point). Assumes ``|q| = 1``.
+    """
+    frame = _checks.frame(frame)
+    r_dot = jnp.zeros_like(_checks.vec3(r, "r")) if r_dot is None else r_dot
+    q, omega, r, r_dot = _prepare([q, omega, r, r_dot], ["q", "omega", "r", "r_dot"], [4, 3, 3, 3])
+    (w,) = _body_vectors(q, [omega], frame)
+    return _rotate(q, jnp.cross(w, r) + r_dot)
+
+
+def point_acceleration(
+    q: Float[Array, "*batch 4"],
+    omega: Float[Array, "*batch 3"],
+    alpha: Float[Array, "*batch 3"],
+    r: Float[Array, "*batch 3"],
+    r_dot: Float[Array, "*batch 3"] | None = None,
+    r_ddot: Float[Array, "*batch 3"] | None = None,
+    frame: str = "body",
+) -> Float[Array, "*batch 3"]:
+    """Space-frame acceleration of a point with body coordinates ``r``.
+
+    ``a = A (a_b x r + w_b x (w_b x r) + 2 w_b x r_dot + r_ddot)``: the vector
+    form of [T] eq. (53) (corrected, see ``docs/seed-errata.md``)
+    ``qddot p q* + q p qddot* + 2 qdot p qdot* + 2 qdot p' q* + 2 q p' qdot* + q p'' q*``.
+    ``omega``, ``alpha`` are resolved in ``frame`` (``a_s = A a_b``);
+    ``r``, ``r_dot``, ``r_ddot`` in the body frame (the last two default to 0).
+    Assumes ``|q| = 1``.
+    """
+    frame = _checks.frame(frame)
+    zero = jnp.zeros_like(_checks.vec3(r, "r"))
+    r_dot = zero if r_dot is None else r_dot
+    r_ddot = zero if r_ddot is None else r_ddot
+    q, omega, alpha, r, r_dot, r_ddot = _prepare(
+        [q, omega, alpha, r, r_dot, r_ddot], ["q", "omega", "alpha", "r", "r_dot", "r_ddot"], [4, 3, 3, 3, 3, 3]
+    )
+    w, a = _body_vectors(q, [omega, alpha], frame)
+    acc = jnp.cross(a, r) + jnp.cross(w, jnp.cross(w, r)) + 2.0 * jnp.cross(w, r_dot) + r_ddot
+    return _rotate(q, acc)
