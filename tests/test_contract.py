@@ -268,8 +268,12 @@ def test_gradients_finite_at_singular_points(name):
     out = fn(*args)
     for o in _leaves(out):
         assert np.all(np.isfinite(np.asarray(o))), f"{name} value not finite at a singular point"
-    jac_rev = [jax.jacrev(lambda x, i=i: _leaves(fn(*args[:diff], x, *args[diff + 1 :]))[i])(args[diff]) for i in range(len(_leaves(out)))]
-    jac_fwd = [jax.jacfwd(lambda x, i=i: _leaves(fn(*args[:diff], x, *args[diff + 1 :]))[i])(args[diff]) for i in range(len(_leaves(out)))]
+    def jacobians(x):  # one compiled function instead of op-by-op dispatch
+        leaf = lambda i: lambda y: _leaves(fn(*args[:diff], y, *args[diff + 1 :]))[i]  # noqa: E731
+        n = len(_leaves(out))
+        return [jax.jacrev(leaf(i))(x) for i in range(n)], [jax.jacfwd(leaf(i))(x) for i in range(n)]
+
+    jac_rev, jac_fwd = jax.jit(jacobians)(args[diff])
     for r, f in zip(jac_rev, jac_fwd):
         assert np.all(np.isfinite(np.asarray(r))), f"{name}: reverse-mode Jacobian not finite at a singular point"
         assert np.all(np.isfinite(np.asarray(f))), f"{name}: forward-mode Jacobian not finite at a singular point"

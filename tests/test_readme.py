@@ -18,6 +18,18 @@ def test_quick_tour_runs(capsys):
     assert "nan" not in capsys.readouterr().out.lower()
 
 
+def test_dynamics_example_runs_and_its_claims_hold(capsys):
+    text = (pathlib.Path(__file__).parent.parent / "README.md").read_text()
+    block = re.search(r"## Kinematics and dynamics\n.*?```python\n(.*?)```", text, re.S).group(1)
+    ns = {}
+    exec(compile(block, "README dynamics example", "exec"), ns)
+    tol = 1e-10 if jax.config.jax_enable_x64 else 1e-5
+    assert float(abs(ns["same"] - ns["qdd"]).max()) < tol
+    assert float(abs(ns["alpha"] - ns["euler"]).max()) < tol
+    assert ns["grad"].shape == (3, 3) and bool(jax.numpy.all(jax.numpy.isfinite(ns["grad"])))
+    assert "nan" not in capsys.readouterr().out.lower()
+
+
 def test_import_changes_no_global_setting():
     import subprocess
     import sys
