@@ -67,6 +67,17 @@ def scalar_like(x: Any, name: str) -> Array:
     return as_float_array(x, name)
 
 
+def per_item(x: Any, name: str, items: Array, items_name: str) -> Array:
+    """Validate one scalar per item: ``x`` shaped ``(..., n)`` where ``items`` is ``(..., n, k)``."""
+    x = scalar_like(x, name)
+    if x.shape[-1:] != items.shape[-2:-1]:
+        raise ValueError(
+            f"argument '{name}' must be shaped (..., n) with n = {items.shape[-2]} (one per row of "
+            f"'{items_name}' {tuple(items.shape)}), got shape {tuple(x.shape)}"
+        )
+    return x
+
+
 def broadcast_batch(arrays: list[Array], names: list[str], core_ndims: list[int]) -> list[Array]:
     """Broadcast the leading (batch) axes of several arrays, keeping their core axes.
 

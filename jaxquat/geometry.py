@@ -58,12 +58,7 @@ def mean(q: Float[Array, "*batch n 4"], weights: Float[Array, "*batch n"] | None
     if weights is None:
         m = jnp.einsum("...ni,...nj->...ij", q, q)
     else:
-        weights = _checks.scalar_like(weights, "weights")
-        if weights.shape[-1:] != q.shape[-2:-1]:
-            raise ValueError(
-                f"argument 'weights' must be shaped (..., n) with n = {q.shape[-2]} to match 'q' {tuple(q.shape)}, "
-                f"got shape {tuple(weights.shape)}"
-            )
+        weights = _checks.per_item(weights, "weights", q, "q")
         q, weights = _checks.broadcast_batch([q, weights], ["q", "weights"], [2, 1])
         m = jnp.einsum("...n,...ni,...nj->...ij", weights, q, q)
     return _top_eigenvector(m)
@@ -112,11 +107,7 @@ def align_vectors(
         a, b = _checks.broadcast_batch([a, b], ["a", "b"], [2, 2])
         weights = jnp.ones(a.shape[:-1], a.dtype)
     else:
-        weights = _checks.scalar_like(weights, "weights")
-        if weights.shape[-1:] != a.shape[-2:-1]:
-            raise ValueError(
-                f"argument 'weights' must be shaped (..., n) with n = {a.shape[-2]}, got shape {tuple(weights.shape)}"
-            )
+        weights = _checks.per_item(weights, "weights", a, "a")
         a, b, weights = _checks.broadcast_batch([a, b, weights], ["a", "b", "weights"], [2, 2, 1])
     if a.shape[-2] == 1:
         return _minimal_rotation(a[..., 0, :], b[..., 0, :])

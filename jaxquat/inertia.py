@@ -50,12 +50,7 @@ def inertia_from_points(
     r = _checks.vec3(positions, "positions")
     if r.ndim < 2:
         raise ValueError(f"argument 'positions' must be shaped (..., n, 3), got shape {tuple(r.shape)}")
-    m = _checks.scalar_like(masses, "masses")
-    if m.shape[-1:] != r.shape[-2:-1]:
-        raise ValueError(
-            f"argument 'masses' must be shaped (..., n) with n = {r.shape[-2]} (one per position), "
-            f"got shape {tuple(m.shape)}"
-        )
+    m = _checks.per_item(masses, "masses", r, "positions")
     r, m = _checks.broadcast_batch([r, m], ["positions", "masses"], [2, 1])
     outer = r[..., :, None] * r[..., None, :]
     eye = jnp.broadcast_to(jnp.eye(3, dtype=r.dtype), outer.shape)
