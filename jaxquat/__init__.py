@@ -8,7 +8,7 @@ axes and broadcast. Importing jaxquat changes no global JAX setting.
 Each module's ``__all__`` is its public surface; the package re-exports them all.
 """
 
-from . import algebra, conversions, dynamics, euler, geometry, inertia, interpolate, kinematics, skew, torques
+from . import algebra, conversions, dynamics, euler, geometry, inertia, interpolate, kinematics, lie, skew, spline, tangent, torques
 from .algebra import *  # noqa: F401,F403
 from .conversions import *  # noqa: F401,F403
 from .dynamics import *  # noqa: F401,F403
@@ -17,7 +17,10 @@ from .geometry import *  # noqa: F401,F403
 from .inertia import *  # noqa: F401,F403
 from .interpolate import *  # noqa: F401,F403
 from .kinematics import *  # noqa: F401,F403
+from .lie import *  # noqa: F401,F403
 from .skew import *  # noqa: F401,F403
+from .spline import *  # noqa: F401,F403
+from .tangent import *  # noqa: F401,F403
 from .torques import *  # noqa: F401,F403
 
 __version__ = "0.1.0"
@@ -33,4 +36,7 @@ __all__ = [
     *inertia.__all__,
     *dynamics.__all__,
     *torques.__all__,
+    *lie.__all__,
+    *tangent.__all__,
+    *spline.__all__,
 ]

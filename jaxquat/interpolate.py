@@ -1,4 +1,7 @@
-"""Interpolation between rotations."""
+"""Interpolation between rotations: slerp, and Shoemake's squad through a sequence of keys.
+
+Smooth timed splines with continuous angular acceleration are in :mod:`jaxquat.spline`.
+"""
 
 from __future__ import annotations
 
@@ -8,8 +11,9 @@ from jaxtyping import Float
 
 from . import _checks, _safe
 from .algebra import _conjugate, _multiply
+from .conversions import _from_rotvec, _to_rotvec
 
-__all__ = ["slerp"]
+__all__ = ["slerp", "squad", "squad_control_points", "squad_segment"]
 
 
 def slerp(
@@ -29,6 +33,10 @@ def slerp(
     q = _checks.quat(q, "q")
     t = _checks.scalar_like(t, "t")
     p, q, t = _checks.broadcast_batch([p, q, t], ["p", "q", "t"], [1, 1, 0])
+    return _slerp(p, q, t)
+
+
+def _slerp(p: Array, q: Array, t: Array) -> Array:
     q = jnp.where((jnp.sum(p * q, axis=-1) < 0)[..., None], -q, q)
     r = _multiply(_conjugate(p), q)
     w, v = r[..., 0], r[..., 1:]
@@ -37,3 +45,72 @@ def slerp(
     usq = scale * scale * nsq
     step = jnp.concatenate([_safe.cos_of_sq(usq)[..., None], (scale * _safe.sinc_of_sq(usq))[..., None] * v], axis=-1)
     return _multiply(p, step)
+
+
+def _align_signs(keys: Array) -> Array:
+    """Flip keys ``(..., n, 4)`` so that consecutive ones have a non-negative dot product."""
+    dots = jnp.sum(keys[..., 1:, :] * keys[..., :-1, :], axis=-1)
+    steps = jnp.where(dots < 0, -1.0, 1.0).astype(keys.dtype)
+    signs = jnp.concatenate([jnp.ones_like(steps[..., :1]), jnp.cumprod(steps, axis=-1)], axis=-1)
+    return keys * signs[..., None]
+
+
+def _control_points(keys: Array) -> Array:
+    q = keys[..., 1:-1, :]
+    qc = _conjugate(q)
+    r_next = _to_rotvec(_multiply(qc, keys[..., 2:, :]))
+    r_prev = _to_rotvec(_multiply(qc, keys[..., :-2, :]))
+    inner = _multiply(q, _from_rotvec(-0.25 * (r_next + r_prev)))
+    return jnp.concatenate([keys[..., :1, :], inner, keys[..., -1:, :]], axis=-2)
+
+
+def squad_control_points(keys: Float[Array, "*batch n 4"]) -> Float[Array, "*batch n 4"]:
+    """Shoemake's intermediate points ``s_i = q_i exp(-(log(q_i* q_(i+1)) + log(q_i* q_(i-1))) / 4)``.
+
+    ``s_0 = q_0`` and ``s_(n-1) = q_(n-1)``. Keys are first sign-aligned (each
+    flipped into the hemisphere of its predecessor), so keys given with either
+    sign give the same curve; ``log`` of a relative rotation is the shortest one.
+    """
+    keys = _checks.quat(keys, "keys")
+    if keys.ndim < 2 or keys.shape[-2] < 2:
+        raise ValueError(f"argument 'keys' must be shaped (..., n, 4) with n >= 2, got shape {tuple(keys.shape)}")
+    keys = _align_signs(keys)
+    return keys if keys.shape[-2] == 2 else _control_points(keys)
+
+
+def squad_segment(
+    q0: Float[Array, "*batch 4"],
+    q1: Float[Array, "*batch 4"],
+    s0: Float[Array, "*batch 4"],
+    s1: Float[Array, "*batch 4"],
+    h: Float[Array, "*batch"] | float,
+) -> Float[Array, "*batch 4"]:
+    """One squad segment: ``slerp(slerp(q0, q1, h), slerp(s0, s1, h), 2 h (1 - h))`` for ``h`` in [0, 1]."""
+    arrays = [_checks.quat(q0, "q0"), _checks.quat(q1, "q1"), _checks.quat(s0, "s0"), _checks.quat(s1, "s1")]
+    h = _checks.scalar_like(h, "h")
+    q0, q1, s0, s1, h = _checks.broadcast_batch([*arrays, h], ["q0", "q1", "s0", "s1", "h"], [1, 1, 1, 1, 0])
+    return _slerp(_slerp(q0, q1, h), _slerp(s0, s1, h), 2 * h * (1 - h))
+
+
+def squad(keys: Float[Array, "n 4"], u: Float[Array, "*shape"] | float) -> Float[Array, "*shape 4"]:
+    """Shoemake's spherical cubic (squad) through ``keys`` at parameter ``u`` in ``[0, n-1]``.
+
+    Key ``i`` is reached at ``u = i`` (uniform parameterisation); between keys
+    ``i`` and ``i+1`` the curve is :func:`squad_segment` with the control points of
+    :func:`squad_control_points` and ``h = u - i``. With uniform spacing the
+    curve has a continuous first derivative across keys (tested by autodiff).
+    ``u`` outside ``[0, n-1]`` extrapolates the end segments. Assumes unit keys.
+    For keys at arbitrary times, with continuous angular acceleration, use
+    :class:`jaxquat.RotationSpline`.
+    """
+    keys = _checks.quat(keys, "keys")
+    if keys.ndim != 2:
+        raise ValueError(f"argument 'keys' must be shaped (n, 4), got shape {tuple(keys.shape)}")
+    u = _checks.scalar_like(u, "u").astype(keys.dtype)
+    controls = squad_control_points(keys)
+    aligned = _align_signs(keys)
+    n = keys.shape[0]
+    i = jnp.clip(jnp.floor(u), 0, n - 2).astype(jnp.int32)
+    h = u - i.astype(u.dtype)
+    q0, q1, s0, s1 = aligned[i], aligned[i + 1], controls[i], controls[i + 1]
+    return _slerp(_slerp(q0, q1, h), _slerp(s0, s1, h), 2 * h * (1 - h))

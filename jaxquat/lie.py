@@ -1,0 +1,129 @@
+"""Lie-group calculus on S^3 / SO(3): retraction ``plus``/``minus``, the Jacobians of the exponential, the adjoint.
+
+Tangent vectors are rotation vectors ``delta`` (``(..., 3)``, radians). With
+``Exp(phi) = from_rotvec(phi) = exp((0, phi/2))``:
+
+* body (right) perturbation: ``plus(q, d) = q Exp(d)``, ``minus(q1, q0) = Log(q0* q1)``;
+* space (left) perturbation: ``plus(q, d, "space") = Exp(d) q``, ``minus(q1, q0, "space") = Log(q1 q0*)``.
+
+``Log`` is :func:`jaxquat.to_rotvec` (the shortest rotation vector, ``|d| <= pi``),
+so ``minus(plus(q, d), q) == d`` for ``|d| < pi``. The Jacobians relate a change
+of the exponential coordinates to a body/space rotation:
+``Exp(phi + e) ~ Exp(phi) Exp(J_r(phi) e) ~ Exp(J_l(phi) e) Exp(phi)``, so the
+body angular velocity of ``Exp(phi(t))`` is ``J_r(phi) phi'`` and the space one
+``J_l(phi) phi'``. ``J_l(phi) = J_r(-phi) = R(phi) J_r(phi)``.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jax import Array
+from jaxtyping import Float
+
+from . import _checks, _safe
+from .algebra import _conjugate, _multiply
+from .conversions import _from_rotvec, _to_matrix, _to_rotvec
+from .skew import _hat
+
+__all__ = [
+    "plus",
+    "minus",
+    "right_jacobian",
+    "right_jacobian_inverse",
+    "left_jacobian",
+    "left_jacobian_inverse",
+    "adjoint",
+]
+
+
+def plus(q: Float[Array, "*batch 4"], delta: Float[Array, "*batch 3"], frame: str = "body") -> Float[Array, "*batch 4"]:
+    """Retraction: ``q Exp(delta)`` (``frame="body"``) or ``Exp(delta) q`` (``"space"``).
+
+    ``Exp(delta) = (cos(|delta|/2), sin(|delta|/2) delta/|delta|)`` is the quaternion
+    exponential of ``(0, delta/2)`` ([T] eqs. (55)-(56)); smooth at ``delta = 0``.
+    Keeps ``|q|``: a unit ``q`` stays unit to rounding, with no renormalisation.
+    """
+    frame = _checks.frame(frame)
+    q = _checks.quat(q)
+    delta = _checks.vec3(delta, "delta")
+    q, delta = _checks.broadcast_batch([q, delta], ["q", "delta"], [1, 1])
+    e = _from_rotvec(delta)
+    return _multiply(q, e) if frame == "body" else _multiply(e, q)
+
+
+def minus(q1: Float[Array, "*batch 4"], q0: Float[Array, "*batch 4"], frame: str = "body") -> Float[Array, "*batch 3"]:
+    """Inverse retraction: ``Log(q0* q1)`` (body) or ``Log(q1 q0*)`` (space), ``|result| <= pi``.
+
+    The rotation vector that :func:`plus` applies to ``q0`` to reach ``q1``
+    (either sign of either quaternion). Scale-invariant in ``q0`` and ``q1``.
+    Not differentiable where ``q1`` is exactly 180 degrees from ``q0`` (two
+    shortest answers).
+    """
+    frame = _checks.frame(frame)
+    q1 = _checks.quat(q1, "q1")
+    q0 = _checks.quat(q0, "q0")
+    q1, q0 = _checks.broadcast_batch([q1, q0], ["q1", "q0"], [1, 1])
+    rel = _multiply(_conjugate(q0), q1) if frame == "body" else _multiply(q1, _conjugate(q0))
+    return _to_rotvec(rel)
+
+
+def _jacobian(phi: Array, linear: float | Array, quadratic: Array) -> Array:
+    """``I + linear * hat(phi) + quadratic * hat(phi)^2`` (coefficients per batch element)."""
+    k = _hat(phi)
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=phi.dtype), k.shape)
+    lin = jnp.asarray(linear, phi.dtype)
+    lin = lin[..., None, None] if lin.ndim else lin
+    return eye + lin * k + quadratic[..., None, None] * (k @ k)
+
+
+def _right_jacobian(phi: Array) -> Array:
+    s = _safe.norm_sq(phi)
+    return _jacobian(phi, -_safe.one_minus_cos_over_sq(s), _safe.x_minus_sin_over_cube(s))
+
+
+def _right_jacobian_inverse(phi: Array) -> Array:
+    s = _safe.norm_sq(phi)
+    return _jacobian(phi, 0.5, _safe.jacobian_inverse_coeff(s))
+
+
+def right_jacobian(phi: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+    """Right Jacobian of the SO(3) exponential, ``J_r(phi)``.
+
+    ``J_r = I - (1 - cos t)/t^2 hat(phi) + (t - sin t)/t^3 hat(phi)^2`` with
+    ``t = |phi|``; the coefficients are Taylor series in ``t^2`` for ``t^2 < 0.5``,
+    so every derivative is exact at ``phi = 0`` (where ``J_r = I``). Maps
+    exponential-coordinate rates to body angular velocity: ``w_b = J_r(phi) phi'``.
+    """
+    return _right_jacobian(_checks.vec3(phi, "phi"))
+
+
+def right_jacobian_inverse(phi: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+    """``J_r(phi)^-1 = I + hat(phi)/2 + (1/t^2 - cot(t/2)/(2 t)) hat(phi)^2``, ``t = |phi|``.
+
+    Written with ``cot(t/2)`` so it is finite at ``t = pi``; singular only at
+    ``t = 2 pi`` (outside the range of :func:`minus`). Series in ``t^2`` near 0.
+    ``phi' = J_r^-1(phi) w_b``.
+    """
+    return _right_jacobian_inverse(_checks.vec3(phi, "phi"))
+
+
+def left_jacobian(phi: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+    """Left Jacobian ``J_l(phi) = J_r(-phi) = I + (1 - cos t)/t^2 hat(phi) + (t - sin t)/t^3 hat(phi)^2``.
+
+    Maps exponential-coordinate rates to space angular velocity: ``w_s = J_l(phi) phi'``.
+    """
+    return _right_jacobian(-_checks.vec3(phi, "phi"))
+
+
+def left_jacobian_inverse(phi: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+    """``J_l(phi)^-1 = J_r(-phi)^-1 = I - hat(phi)/2 + (1/t^2 - cot(t/2)/(2 t)) hat(phi)^2``."""
+    return _right_jacobian_inverse(-_checks.vec3(phi, "phi"))
+
+
+def adjoint(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
+    """Adjoint of SO(3) at ``q``: ``q Exp(d) q* = Exp(Ad_q d)`` with ``Ad_q = to_matrix(q)``.
+
+    Moves a body-frame tangent vector to the space frame:
+    ``plus(q, d, "body") == plus(q, adjoint(q) @ d, "space")``. Assumes ``|q| = 1``.
+    """
+    return _to_matrix(_checks.quat(q))
