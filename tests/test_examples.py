@@ -1,0 +1,40 @@
+"""The examples run as documented (fast variants) and their printed claims hold.
+
+They switch float64 on themselves, so they run in subprocesses, once per `make test`
+(in the float64 pass)."""
+
+from __future__ import annotations
+
+import pathlib
+import re
+import subprocess
+import sys
+
+import pytest
+
+from helpers import X64
+
+ROOT = pathlib.Path(__file__).parent.parent
+pytestmark = pytest.mark.skipif(not X64, reason="examples run in float64 by design; once per make test")
+
+
+def _run(*args: str) -> str:
+    out = subprocess.run([sys.executable, *args], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return out.stdout
+
+
+def test_fit_rotation_example():
+    text = _run("examples/fit_rotation.py", "--iters", "500")
+    rows = {m.group(1).strip(): m.groups()[1:] for m in re.finditer(r"^(\w+, lr [\d.]+)\s+(\S+)\s+(\S+)\s+(\S+)$", text, re.M)}
+    tangent = rows["tangent, lr 0.1"]
+    assert int(tangent[0]) < 500, text  # reaches 1e-8 rad
+    assert float(tangent[2]) < 1e-13, text  # |q| stays 1 without renormalisation
+    assert set(rows) == {"tangent, lr 0.1", "naive, lr 0.1", "naive, lr 0.05"}
+
+
+def test_spline_plot_example(tmp_path):
+    text = _run("examples/spline_plot.py", "--out", str(tmp_path))
+    assert (tmp_path / "rotation_spline.png").stat().st_size > 10_000
+    jumps = [float(x) for x in re.findall(r"([\d.]+e[-+]\d+) rad/s", text)]
+    assert len(jumps) == 2 and max(jumps) < 1e-5, text
