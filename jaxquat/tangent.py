@@ -34,7 +34,7 @@ from . import _checks
 from .algebra import _conjugate, _multiply
 from .lie import plus
 
-__all__ = ["tangent_gradient", "tangent_optimizer", "apply_tangent_updates"]
+__all__ = ["tangent_gradient", "tangent_gradients", "tangent_optimizer", "apply_tangent_updates"]
 
 
 def tangent_gradient(
@@ -60,6 +60,15 @@ def _mask_tree(params: Any, mask: Any) -> Any:
     if callable(mask):
         return mask(params)
     return mask
+
+
+def tangent_gradients(params: Any, grads: Any, mask: Any = None, frame: str = "body") -> Any:
+    """:func:`tangent_gradient` on the quaternion leaves of a pytree; other leaves pass through.
+
+    ``mask`` as in :func:`tangent_optimizer` (``None``: every leaf is a quaternion array).
+    """
+    m = _mask_tree(params, mask)
+    return jax.tree.map(lambda is_q, g, p: tangent_gradient(p, g, frame) if is_q else g, m, grads, params)
 
 
 class TangentOptimizer(NamedTuple):
@@ -91,9 +100,7 @@ def tangent_optimizer(base: Any, mask: Any = None, frame: str = "body") -> Tange
         return base.init(tangent_params(params))
 
     def update(grads, state, params):
-        m = _mask_tree(params, mask)
-        tg = jax.tree.map(lambda is_q, g, p: tangent_gradient(p, g, frame) if is_q else g, m, grads, params)
-        return base.update(tg, state, tangent_params(params))
+        return base.update(tangent_gradients(params, grads, mask, frame), state, tangent_params(params))
 
     return TangentOptimizer(init, update)
 

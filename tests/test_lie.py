@@ -123,6 +123,18 @@ def test_tangent_gradient_is_the_derivative_along_plus(seed):
         assert_close(jq.tangent_gradient(q, g, frame), along[frame], tol=100 * TOL, what=f"tangent gradient {frame}")
 
 
+def test_tangent_gradients_on_a_pytree():
+    q = jnp.asarray(random_quats(2, 3), DTYPE)
+    g = jnp.asarray(np.random.default_rng(2).normal(size=(3, 4)), DTYPE)
+    params = {"attitudes": q, "gain": jnp.ones(2, DTYPE), "nested": (q[:1],)}
+    grads = {"attitudes": g, "gain": jnp.full(2, 3.0, DTYPE), "nested": (g[:1],)}
+    mask = {"attitudes": True, "gain": False, "nested": (True,)}
+    out = jq.tangent_gradients(params, grads, mask)
+    assert_close(out["attitudes"], jq.tangent_gradient(q, g), tol=0)
+    assert_close(out["nested"][0], jq.tangent_gradient(q[:1], g[:1]), tol=0)
+    assert_close(out["gain"], grads["gain"], tol=0)
+
+
 def test_tangent_optimizer_fits_a_rotation_and_keeps_unit_norm():
     rng = np.random.default_rng(0)
     truth = jq.from_rotvec(jnp.asarray([1.0, -2.0, 0.5], DTYPE))
