@@ -8,16 +8,22 @@ axes and broadcast. Importing jaxquat changes no global JAX setting.
 Each module's ``__all__`` is its public surface; the package re-exports them all.
 """
 
-from . import algebra, conversions, dynamics, euler, geometry, inertia, interpolate, kinematics, lie, skew, spline, tangent, torques
+from . import (
+    algebra, conversions, dynamics, euler, geometry, inertia, integrators, interpolate, kinematics, lie,
+    rigid_body, simulate as _simulate_module, skew, spline, tangent, torques,
+)
 from .algebra import *  # noqa: F401,F403
 from .conversions import *  # noqa: F401,F403
 from .dynamics import *  # noqa: F401,F403
 from .euler import *  # noqa: F401,F403
 from .geometry import *  # noqa: F401,F403
 from .inertia import *  # noqa: F401,F403
+from .integrators import *  # noqa: F401,F403
 from .interpolate import *  # noqa: F401,F403
 from .kinematics import *  # noqa: F401,F403
 from .lie import *  # noqa: F401,F403
+from .rigid_body import *  # noqa: F401,F403
+from .simulate import *  # noqa: F401,F403
 from .skew import *  # noqa: F401,F403
 from .spline import *  # noqa: F401,F403
 from .tangent import *  # noqa: F401,F403
@@ -39,4 +45,7 @@ __all__ = [
     *lie.__all__,
     *tangent.__all__,
     *spline.__all__,
+    *rigid_body.__all__,
+    *integrators.__all__,
+    *_simulate_module.__all__,
 ]

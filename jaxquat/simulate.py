@@ -1,0 +1,111 @@
+"""One call to simulate rigid bodies: ``simulate(q0, omega0, inertia, ts, ...)``."""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable, NamedTuple
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from . import _checks
+from .integrators import RKMK45, RigidBodySplit, _RKMK
+from .rigid_body import RigidBody
+
+__all__ = ["Simulation", "simulate"]
+
+
+class Simulation(NamedTuple):
+    """Result of :func:`simulate`: attitudes ``q`` ``(*batch, len(ts), 4)``, body angular
+    velocities ``omega`` ``(*batch, len(ts), 3)`` and diffrax's ``solution`` (batched)."""
+
+    q: Array
+    omega: Array
+    solution: Any
+
+
+def simulate(
+    q0: Any,
+    omega0: Any,
+    inertia: Any,
+    ts: Any,
+    *,
+    torque: Callable | None = None,
+    torque_frame: str = "body",
+    args: Any = None,
+    solver: diffrax.AbstractSolver | None = None,
+    dt0: float | None = None,
+    rtol: float = 1e-8,
+    atol: float = 1e-8,
+    max_steps: int | None = None,
+    adjoint: diffrax.AbstractAdjoint | None = None,
+    progress: bool = False,
+) -> Simulation:
+    """Integrate the rigid body ``(q, w_b)`` from ``ts[0]`` and return the state at every ``ts``.
+
+    ``q0`` ``(..., 4)`` (unit), ``omega0`` ``(..., 3)`` body angular velocity,
+    ``inertia`` ``(..., 3, 3)`` body tensor; their leading axes broadcast and are
+    mapped with ``vmap``. ``torque``: ``fn(t, q, w, args)`` in ``torque_frame``.
+
+    ``solver`` defaults to :class:`jaxquat.RKMK45` with a PID controller
+    (``rtol``, ``atol``) that is made to step exactly onto every ``ts`` (so saved
+    states are step ends, not interpolants). A fixed-step solver
+    (``LieEuler``, ``RKMK4``, the splittings, or any diffrax solver without an
+    error estimate) needs ``dt0``. ``adjoint`` defaults to diffrax's
+    ``RecursiveCheckpointAdjoint``; ``progress=True`` shows a tqdm bar.
+    """
+    q0 = _checks.quat(q0, "q0")
+    omega0 = _checks.vec3(omega0, "omega0")
+    inertia = _checks.inertia(inertia)
+    ts = _checks.scalar_like(ts, "ts")
+    if ts.ndim != 1 or ts.shape[0] < 2:
+        raise ValueError(f"argument 'ts' must be shaped (n,) with n >= 2, got shape {tuple(ts.shape)}")
+    q0, omega0, inertia = _checks.broadcast_batch([q0, omega0, inertia], ["q0", "omega0", "inertia"], [1, 1, 2])
+    ts = ts.astype(q0.dtype)
+    solver = RKMK45() if solver is None else solver
+    adaptive = _has_error_estimate(solver)
+    if not adaptive and dt0 is None:
+        raise ValueError(f"argument 'dt0' is required with the fixed-step solver {type(solver).__name__}")
+    if isinstance(solver, RigidBodySplit) and not isinstance(inertia, jax.core.Tracer):
+        off = np.asarray(inertia) - np.asarray(jnp.vectorize(jnp.diag, signature="(n)->(n,n)")(
+            jnp.diagonal(inertia, axis1=-2, axis2=-1)))
+        if np.abs(off).max() > 0:
+            raise ValueError(
+                "argument 'inertia' must be diagonal (principal axes) for the splitting solvers; "
+                "rotate the attitude to principal axes first"
+            )
+    if max_steps is None:
+        span = float(np.max(np.abs(np.asarray(ts[-1] - ts[0])))) if not isinstance(ts, jax.core.Tracer) else None
+        max_steps = 100_000 if (adaptive or span is None) else math.ceil(span / abs(dt0)) + len(ts) + 16
+    if adaptive:
+        controller = diffrax.ClipStepSizeController(diffrax.PIDController(rtol=rtol, atol=atol), step_ts=ts)
+    else:
+        controller = diffrax.ConstantStepSize()
+    adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
+    meter = diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter()
+
+    def one(q, w, inertia_1):
+        term = diffrax.ODETerm(RigidBody(inertia_1, torque, torque_frame))
+        sol = diffrax.diffeqsolve(
+            term, solver, ts[0], ts[-1], dt0, (q, w), args=args, saveat=diffrax.SaveAt(ts=ts),
+            stepsize_controller=controller, adjoint=adjoint, max_steps=max_steps, progress_meter=meter,
+        )
+        return sol.ys[0], sol.ys[1], sol
+
+    batch = q0.shape[:-1]
+    flat = [x.reshape((-1,) + x.shape[len(batch):]) for x in (q0, omega0, inertia)]
+    if batch:
+        qs, ws, sol = jax.vmap(one)(*flat)
+        n = len(ts)
+        return Simulation(qs.reshape(batch + (n, 4)), ws.reshape(batch + (n, 3)), sol)
+    return Simulation(*one(q0, omega0, inertia))
+
+
+def _has_error_estimate(solver) -> bool:
+    """Whether a solver returns an error estimate (so a PID controller can adapt its step)."""
+    if isinstance(solver, _RKMK):
+        return len(solver.tableau[3]) > 0
+    return isinstance(solver, diffrax.AbstractAdaptiveSolver)

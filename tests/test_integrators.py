@@ -1,0 +1,184 @@
+"""Rigid-body solvers inside diffrax: against the symmetric top in closed form and a tight
+scipy DOP853 reference, unit norm with no renormalisation, momentum conservation of the
+splittings, measured convergence orders, gradients through the solve, batching."""
+
+from __future__ import annotations
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+import jaxquat as jq
+from helpers import DTYPE, X64, assert_close, central_difference_jacobian
+
+I_DIAG = np.array([1.0, 2.0, 3.0])
+W0 = np.array([1.0, 0.1, 0.5])
+SOLVERS = {
+    "LieEuler": (jq.LieEuler(), 1),
+    "RKMK4": (jq.RKMK4(), 4),
+    "RKMK45": (jq.RKMK45(), 5),
+    "RigidBodySplit": (jq.RigidBodySplit(), 2),
+    "RigidBodySplit4": (jq.RigidBodySplit4(), 4),
+}
+
+
+def _dop853(t_end, ts, inertia=I_DIAG, w0=W0):
+    """Independent reference: the raw 7-state ODE in NumPy, DOP853 at rtol = atol = 1e-13."""
+
+    def rhs(t, y):
+        q, w = y[:4], y[4:]
+        qd = 0.5 * np.array([-q[1:] @ w, *(q[0] * w + np.cross(q[1:], w))])
+        return np.concatenate([qd, np.cross(inertia * w, w) / inertia])
+
+    y0 = np.concatenate([[1.0, 0, 0, 0], w0])
+    sol = solve_ivp(rhs, (0, t_end), y0, method="DOP853", rtol=1e-13, atol=1e-13, t_eval=ts)
+    return sol.y[:4].T, sol.y[4:].T
+
+
+def _symmetric_top(ts, it, i3, w0):
+    """Closed form: q(t) = Exp(|H| t / It h_s) q0 Exp((1/I3 - 1/It) m3 t e3), q0 = identity."""
+    m = np.array([it * w0[0], it * w0[1], i3 * w0[2]])
+    h = np.linalg.norm(m)
+    outer = np.outer(ts * h / it, m / h)
+    inner = np.outer(ts * (1 / i3 - 1 / it) * m[2], [0.0, 0.0, 1.0])
+    return jq.multiply(jq.from_rotvec(jnp.asarray(outer)), jq.from_rotvec(jnp.asarray(inner)))
+
+
+@pytest.mark.skipif(not X64, reason="accuracy bars are float64 figures")
+@pytest.mark.parametrize("name,dt,bound", [("RKMK45", None, 1e-7), ("RKMK4", 0.01, 1e-8), ("RigidBodySplit4", 0.01, 5e-7)])
+def test_symmetric_top_closed_form(name, dt, bound):
+    it, i3, w0 = 2.0, 3.5, np.array([0.4, -0.3, 1.3])
+    ts = np.linspace(0.0, 50.0, 11)
+    sim = jq.simulate(jq.identity(), jnp.asarray(w0), jnp.diag(jnp.asarray([it, it, i3])), jnp.asarray(ts),
+                      solver=SOLVERS[name][0], dt0=dt, rtol=1e-11, atol=1e-11)
+    err = np.asarray(jq.angle_between(sim.q, _symmetric_top(ts, it, i3, w0)))
+    assert err.max() < bound, err
+
+
+@pytest.mark.skipif(not X64, reason="accuracy bars are float64 figures")
+def test_asymmetric_top_against_dop853_and_invariants():
+    ts = np.linspace(0.0, 100.0, 21)
+    q_ref, w_ref = _dop853(100.0, ts)
+    for name, dt, bound in (("RKMK45", None, 1e-6), ("RKMK4", 0.01, 1e-8), ("RigidBodySplit", 0.01, 1e-4), ("RigidBodySplit4", 0.01, 1e-7)):
+        sim = jq.simulate(jq.identity(), jnp.asarray(W0), jnp.diag(jnp.asarray(I_DIAG)), jnp.asarray(ts),
+                          solver=SOLVERS[name][0], dt0=dt, rtol=1e-10, atol=1e-10)
+        err = np.asarray(jq.angle_between(sim.q, jnp.asarray(q_ref)))
+        assert err.max() < bound, (name, err.max())
+        inv = jq.invariants(sim.q, sim.omega, jnp.diag(jnp.asarray(I_DIAG)))
+        assert float(jnp.abs(inv["norm_error"]).max()) < 1e-13, (name, "norm")  # no renormalisation anywhere
+        if name.startswith("RigidBodySplit"):
+            h = np.asarray(inv["momentum_space"])
+            drift = np.abs(h - h[0]).max() / np.linalg.norm(h[0])
+            assert drift < 1e-12, (name, drift)  # spatial momentum exact to rounding
+
+
+@pytest.mark.skipif(not X64, reason="convergence orders are measured in float64")
+@pytest.mark.parametrize("name", sorted(SOLVERS))
+def test_measured_convergence_order(name):
+    solver, order = SOLVERS[name]
+    t_end = 2.0
+    q_ref, _ = _dop853(t_end, np.array([0.0, t_end]))
+    # step pairs in each method's asymptotic range, above the rounding floor (~1e-13)
+    dts = {1: (0.004, 0.002), 2: (0.004, 0.002), 4: (0.02, 0.01), 5: (0.2, 0.1)}[order]
+    errs = []
+    for dt in dts:
+        sim = _fixed(solver, dt, t_end)  # RKMK45 too runs at fixed steps here
+        errs.append(float(jq.angle_between(sim[-1], jnp.asarray(q_ref[-1]))))
+    measured = np.log2(errs[0] / errs[1])
+    assert abs(measured - order) < 0.35, (name, errs, measured)
+
+
+def _fixed(solver, dt, t_end):
+    term = diffrax.ODETerm(jq.RigidBody(jnp.diag(jnp.asarray(I_DIAG))))
+    sol = diffrax.diffeqsolve(term, solver, 0.0, t_end, dt, (jq.identity(), jnp.asarray(W0)),
+                              stepsize_controller=diffrax.ConstantStepSize(), max_steps=10_000)
+    return sol.ys[0]
+
+
+@pytest.mark.skipif(not X64, reason="finite differences need float64")
+def test_gradients_through_the_solve_match_finite_differences():
+    """grad of a final-attitude loss w.r.t. omega0, the inertia and a torque parameter
+    (RecursiveCheckpointAdjoint), against central differences; finite for a body at rest."""
+    target = jq.from_rotvec(jnp.asarray([0.3, -0.2, 0.5]))
+
+    def torque(t, q, w, k):
+        return jnp.broadcast_to(k * jnp.asarray([0.1, -0.2, 0.05]), w.shape)
+
+    def loss(w0, moments, k):
+        sim = jq.simulate(jq.identity(), w0, jnp.diag(moments), jnp.asarray([0.0, 1.5]),
+                          torque=torque, args=k, solver=jq.RKMK4(), dt0=0.01)
+        return jnp.sum((sim.q[-1] - target) ** 2)
+
+    args = (jnp.asarray([0.4, -0.2, 0.3]), jnp.asarray([1.0, 2.0, 2.5]), jnp.asarray(0.7))
+    grad_fn = jax.jit(jax.grad(loss, argnums=(0, 1, 2)))
+    loss_fn = jax.jit(loss)  # one compilation serves every finite-difference evaluation
+    grads = grad_fn(*args)
+    for i, g in enumerate(grads):
+        def partial(x, i=i):
+            a = list(args)
+            a[i] = x
+            return loss_fn(*a)
+
+        fd = central_difference_jacobian(partial, np.asarray(args[i]), h=1e-6)
+        scale = max(1e-3, float(np.abs(fd).max()))
+        assert_close(np.asarray(g) / scale, fd / scale, tol=1e-6, what=f"gradient {i}")
+    at_rest = grad_fn(jnp.zeros(3), args[1], args[2])
+    assert all(np.all(np.isfinite(np.asarray(g))) for g in at_rest)
+
+
+def test_batched_simulation_matches_single_runs_and_keeps_dtype():
+    rng = np.random.default_rng(0)
+    q0 = jq.normalize(jnp.asarray(rng.normal(size=(2, 3, 4)), DTYPE))
+    w0 = jnp.asarray(rng.normal(size=(2, 3, 3)), DTYPE)
+    inertia = jnp.diag(jnp.asarray(I_DIAG, DTYPE))
+    ts = jnp.linspace(0.0, 2.0, 5, dtype=DTYPE)
+    sim = jq.simulate(q0, w0, inertia, ts, solver=jq.RKMK4(), dt0=0.01)
+    assert sim.q.shape == (2, 3, 5, 4) and sim.omega.shape == (2, 3, 5, 3) and sim.q.dtype == DTYPE
+    one = jq.simulate(q0[1, 2], w0[1, 2], inertia, ts, solver=jq.RKMK4(), dt0=0.01)
+    assert_close(sim.q[1, 2], one.q, tol=1e-12 if X64 else 1e-5)
+    norm_err = float(jnp.abs(jq.norm(sim.q) - 1).max())
+    assert norm_err < (1e-13 if X64 else 1e-6), norm_err
+
+
+def test_dense_output_stays_unit():
+    term = diffrax.ODETerm(jq.RigidBody(jnp.diag(jnp.asarray(I_DIAG, DTYPE))))
+    y0 = (jq.identity((), DTYPE), jnp.asarray(W0, DTYPE))
+    sol = diffrax.diffeqsolve(term, jq.RKMK45(), 0.0, 5.0, 0.1, y0, saveat=diffrax.SaveAt(dense=True),
+                              stepsize_controller=diffrax.PIDController(rtol=1e-6, atol=1e-6))
+    qs = jnp.stack([sol.evaluate(t)[0] for t in np.linspace(0.05, 4.95, 7)])
+    assert float(jnp.abs(jq.norm(qs) - 1).max()) < (1e-13 if X64 else 1e-6)
+
+
+def test_euler_parameter_body_is_the_same_motion():
+    """(q, qdot) with Chou's closed form under Tsit5 tracks (q, w) under RKMK45."""
+    inertia = jnp.asarray([[2.0, 0.1, 0.0], [0.1, 3.0, 0.2], [0.0, 0.2, 4.0]], DTYPE)
+    q0, w0 = jq.identity((), DTYPE), jnp.asarray(W0, DTYPE)
+    ep = jq.EulerParameterBody(inertia)
+    qd0 = jq.qdot_from_omega(q0, w0)
+    assert_close(ep(0.0, (q0, qd0), None)[1], jq.euler_parameter_acceleration(q0, qd0, inertia), tol=0)
+    ts = jnp.linspace(0.0, 5.0, 6, dtype=DTYPE)
+    tol = 1e-10 if X64 else 1e-5
+    sol = diffrax.diffeqsolve(diffrax.ODETerm(ep), diffrax.Tsit5(), 0.0, 5.0, 0.01, (q0, qd0),
+                              saveat=diffrax.SaveAt(ts=ts), stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol))
+    ref = jq.simulate(q0, w0, inertia, ts, rtol=tol, atol=tol)
+    assert float(jnp.max(jq.angle_between(sol.ys[0], ref.q))) < (1e-8 if X64 else 1e-3)
+    assert_close(jq.omega_from_qdot(sol.ys[0], sol.ys[1]), ref.omega, tol=1e-7 if X64 else 1e-3)
+
+
+def test_bad_input():
+    inertia = jnp.diag(jnp.asarray(I_DIAG))
+    ts = jnp.linspace(0.0, 1.0, 3)
+    with pytest.raises(ValueError, match="argument 'dt0' is required"):
+        jq.simulate(jq.identity(), jnp.zeros(3), inertia, ts, solver=jq.RKMK4())
+    with pytest.raises(ValueError, match="must be diagonal"):
+        jq.simulate(jq.identity(), jnp.zeros(3), inertia.at[0, 1].set(0.1).at[1, 0].set(0.1), ts,
+                    solver=jq.RigidBodySplit(), dt0=0.1)
+    with pytest.raises(ValueError, match=r"argument 'ts' must be shaped \(n,\)"):
+        jq.simulate(jq.identity(), jnp.zeros(3), inertia, jnp.zeros(1))
+    with pytest.raises(ValueError, match=r"argument 'omega0' must be a 3-vector array"):
+        jq.simulate(jq.identity(), jnp.zeros(4), inertia, ts)
+    with pytest.raises(ValueError, match="argument 'inertia'"):
+        jq.simulate(jq.identity(), jnp.zeros(3), jnp.diag(jnp.asarray([1.0, 1.0, 3.0])), ts)
