@@ -31,13 +31,8 @@ from .torques import as_body_torque
 __all__ = ["RigidBody", "EulerParameterBody", "invariants"]
 
 
-class RigidBody(eqx.Module):
-    """Vector field of a rigid body on ``y = (q, w_b)``: ``rb(t, y, args) -> (dq/dt, dw_b/dt)``.
-
-    ``inertia``: body-frame tensor ``(3, 3)``. ``torque``: ``None`` (torque-free)
-    or a function ``fn(t, q, w, args)`` written in ``torque_frame`` (see
-    :func:`jaxquat.as_body_torque`); ``args`` of ``diffeqsolve`` are passed to it.
-    """
+class _Body(eqx.Module):
+    """Shared fields: body inertia (validated), body torque function, the frame it was written in."""
 
     inertia: Array
     torque: Callable | None = None
@@ -54,36 +49,34 @@ class RigidBody(eqx.Module):
         return self.torque(t, q, w, args)
 
     def angular_acceleration(self, t, q: Array, w: Array, args) -> Array:
-        """``I^-1 (M_b - w x I w)``."""
+        """Euler's equations ``I^-1 (M_b - w x I w)`` (body frame)."""
         return _solve(self.inertia, self.body_torque(t, q, w, args) - jnp.cross(w, _apply(self.inertia, w)))
+
+
+class RigidBody(_Body):
+    """Vector field of a rigid body on ``y = (q, w_b)``: ``rb(t, y, args) -> (dq/dt, dw_b/dt)``.
+
+    ``inertia``: body-frame tensor ``(3, 3)``. ``torque``: ``None`` (torque-free)
+    or a function ``fn(t, q, w, args)`` written in ``torque_frame`` (see
+    :func:`jaxquat.as_body_torque`); ``args`` of ``diffeqsolve`` are passed to it.
+    """
 
     def __call__(self, t, y, args):
         q, w = y
         return 0.5 * _multiply(q, _pure(w)), self.angular_acceleration(t, q, w, args)
 
 
-class EulerParameterBody(eqx.Module):
+class EulerParameterBody(_Body):
     """Vector field on ``y = (q, qdot)``: ``(qdot, qddot)`` from Chou's closed form [C] eq. (75).
 
     The same body as :class:`RigidBody`; the norm constraint is kept to second
     order by the ``-|qdot|^2 q`` term (a generic integrator still lets ``|q|`` drift).
     """
 
-    inertia: Array
-    torque: Callable | None = None
-    torque_frame: str = eqx.field(static=True, default="body")
-
-    def __init__(self, inertia: Any, torque: Callable | None = None, torque_frame: str = "body"):
-        self.inertia = _validated(inertia)
-        self.torque_frame = _checks.frame(torque_frame, "torque_frame")
-        self.torque = None if torque is None else as_body_torque(torque, torque_frame)
-
     def __call__(self, t, y, args):
         q, qdot = y
         w = _omega_from_qdot(q, qdot, "body")
-        m = jnp.zeros_like(w) if self.torque is None else self.torque(t, q, w, args)
-        a = _solve(self.inertia, m - jnp.cross(w, _apply(self.inertia, w)))
-        return qdot, _qddot_from_alpha(q, qdot, a, "body")
+        return qdot, _qddot_from_alpha(q, qdot, self.angular_acceleration(t, q, w, args), "body")
 
 
 def invariants(
