@@ -25,7 +25,7 @@ from jaxtyping import Float
 from . import _checks
 from .algebra import _conjugate, _multiply, _rotate
 from .inertia import _apply, _solve, _validated
-from .kinematics import _alpha_from_qddot, _omega_from_qdot, _pure, _qddot_from_alpha
+from .kinematics import _alpha_from_qddot, _omega_from_qdot, _pure, _qddot_from_alpha, _vec_rate
 
 __all__ = [
     "angular_momentum",
@@ -250,8 +250,7 @@ def torque_from_generalized_force(
     q = _checks.quat(q)
     force = _checks.quat(force, "force")
     q, force = _checks.broadcast_batch([q, force], ["q", "force"], [1, 1])
-    prod = _multiply(_conjugate(q), force) if frame == "body" else _multiply(force, _conjugate(q))
-    return 0.5 * prod[..., 1:]
+    return 0.5 * _vec_rate(q, force, frame)
 
 
 def euler_parameter_augmented_system(

@@ -31,7 +31,7 @@ from jax import Array
 from jaxtyping import Float
 
 from . import _checks
-from .algebra import _conjugate, _multiply
+from .kinematics import _vec_rate
 from .lie import plus
 
 __all__ = ["tangent_gradient", "tangent_gradients", "tangent_optimizer", "apply_tangent_updates"]
@@ -50,8 +50,7 @@ def tangent_gradient(
     q = _checks.quat(q)
     grad = _checks.quat(grad, "grad")
     q, grad = _checks.broadcast_batch([q, grad], ["q", "grad"], [1, 1])
-    prod = _multiply(_conjugate(q), grad) if frame == "body" else _multiply(grad, _conjugate(q))
-    return 0.5 * prod[..., 1:]
+    return 0.5 * _vec_rate(q, grad, frame)  # the same map as a generalised force -> torque
 
 
 def _mask_tree(params: Any, mask: Any) -> Any:

@@ -14,7 +14,6 @@ from helpers import (
     TOL,
     X64,
     assert_close,
-    assert_same_rotation,
     random_quats,
     random_vectors,
     seeds,

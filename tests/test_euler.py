@@ -10,7 +10,7 @@ from hypothesis import given
 from scipy.spatial.transform import Rotation
 
 import jaxquat as jq
-from helpers import DTYPE, TOL, X64, assert_close, assert_same_rotation, from_scipy, random_quats, seeds, to_scipy
+from helpers import DTYPE, TOL, assert_close, assert_same_rotation, from_scipy, random_quats, seeds, to_scipy
 
 SEQUENCES = [a + b + c for a in "xyz" for b in "xyz" for c in "xyz" if a != b and b != c]
 SEQUENCES = SEQUENCES + [s.upper() for s in SEQUENCES]
