@@ -24,7 +24,8 @@ from jaxtyping import Float
 
 from . import _checks
 from .algebra import _conjugate, _multiply, _rotate
-from .inertia import _apply, _solve, _validated
+from .inertia import _solve, _validated
+from .skew import _matvec
 from .kinematics import _alpha_from_qddot, _omega_from_qdot, _pure, _qddot_from_alpha, _vec_rate
 
 __all__ = [
@@ -67,7 +68,7 @@ def _from_body(q: Array, v: Array, frame: str) -> Array:
 
 def _euler_body(inertia: Array, w: Array, torque: Array) -> Array:
     """``I^-1 (M - w x I w)``, all body frame."""
-    return _solve(inertia, torque - jnp.cross(w, _apply(inertia, w)))
+    return _solve(inertia, torque - jnp.cross(w, _matvec(inertia, w)))
 
 
 def angular_momentum(
@@ -84,7 +85,7 @@ def angular_momentum(
     """
     frame = _checks.frame(frame)
     q, omega, inertia = _args(q, {"omega": omega}, inertia)
-    h = _apply(inertia, _to_body(q, omega, frame))
+    h = _matvec(inertia, _to_body(q, omega, frame))
     return _from_body(q, h, frame)
 
 
@@ -102,7 +103,7 @@ def kinetic_energy(
     frame = _checks.frame(frame)
     q, omega, inertia = _args(q, {"omega": omega}, inertia)
     w = _to_body(q, omega, frame)
-    return 0.5 * jnp.sum(w * _apply(inertia, w), axis=-1)
+    return 0.5 * jnp.sum(w * _matvec(inertia, w), axis=-1)
 
 
 def angular_acceleration(
@@ -140,7 +141,7 @@ def inverse_dynamics(
     q, omega, alpha, inertia = _args(q, {"omega": omega, "alpha": alpha}, inertia)
     w = _to_body(q, omega, frame)
     a = _to_body(q, alpha, frame)
-    return _from_body(q, _apply(inertia, a) + jnp.cross(w, _apply(inertia, w)), frame)
+    return _from_body(q, _matvec(inertia, a) + jnp.cross(w, _matvec(inertia, w)), frame)
 
 
 def euler_parameter_acceleration(
@@ -193,7 +194,7 @@ def euler_parameter_torque(
     q, qdot, qddot, inertia = _args(q, {}, inertia, {"qdot": qdot, "qddot": qddot})
     w = _omega_from_qdot(q, qdot, "body")
     a = _alpha_from_qddot(q, qdot, qddot, "body")
-    return _from_body(q, _apply(inertia, a) + jnp.cross(w, _apply(inertia, w)), frame)
+    return _from_body(q, _matvec(inertia, a) + jnp.cross(w, _matvec(inertia, w)), frame)
 
 
 def _quat_inertia_product(q: Array, inertia: Array) -> Array:
@@ -299,4 +300,4 @@ def norm_constraint_multiplier(
     """
     q, qdot, inertia = _args(q, {}, inertia, {"qdot": qdot})
     w = _omega_from_qdot(q, qdot, "body")
-    return jnp.sum(w * _apply(inertia, w), axis=-1)
+    return jnp.sum(w * _matvec(inertia, w), axis=-1)

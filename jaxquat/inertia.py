@@ -198,7 +198,3 @@ def _solve(inertia: Array, b: Array) -> Array:
         [c00 * b0 + c01 * b1 + c02 * b2, c01 * b0 + c11 * b1 + c12 * b2, c02 * b0 + c12 * b1 + c22 * b2], -1
     ) / det[..., None]
 
-
-def _apply(inertia: Array, w: Array) -> Array:
-    """``I w`` without a batched matmul."""
-    return jnp.sum(inertia * w[..., None, :], axis=-1)

@@ -53,15 +53,12 @@ from .algebra import _multiply
 from .conversions import _from_rotvec
 from .interpolate import _slerp
 from .lie import _right_jacobian_inverse
+from .skew import _matvec
 from .rigid_body import RigidBody
 
 __all__ = ["SlerpInterpolation", "LieEuler", "RKMK4", "RKMK45", "RigidBodySplit", "RigidBodySplit4"]
 
 _RESULTS = diffrax.RESULTS
-
-
-def _mv(m: Array, v: Array) -> Array:
-    return jnp.sum(m * v[..., None, :], axis=-1)
 
 
 class SlerpInterpolation(diffrax.AbstractLocalInterpolation):
@@ -130,7 +127,7 @@ class _RKMK(_LieSolver):
             wi = w + h * jnp.tensordot(coeff, k_w, axes=1)
             qi = _multiply(q, _from_rotvec(theta))
             _, wdot = terms.vf(t0 + c_arr[i] * h, (qi, wi), args)
-            k_theta = k_theta.at[i].set(_mv(_right_jacobian_inverse(theta), wi))
+            k_theta = k_theta.at[i].set(_matvec(_right_jacobian_inverse(theta), wi))
             return k_theta, k_w.at[i].set(wdot)
 
         zeros = jnp.zeros((n,) + w.shape, w.dtype)

@@ -24,7 +24,8 @@ from jaxtyping import Float
 
 from . import _checks
 from .algebra import _multiply, _rotate
-from .inertia import _apply, _solve, _validated
+from .inertia import _solve, _validated
+from .skew import _matvec
 from .kinematics import _omega_from_qdot, _pure, _qddot_from_alpha
 from .torques import as_body_torque
 
@@ -50,7 +51,7 @@ class _Body(eqx.Module):
 
     def angular_acceleration(self, t, q: Array, w: Array, args) -> Array:
         """Euler's equations ``I^-1 (M_b - w x I w)`` (body frame)."""
-        return _solve(self.inertia, self.body_torque(t, q, w, args) - jnp.cross(w, _apply(self.inertia, w)))
+        return _solve(self.inertia, self.body_torque(t, q, w, args) - jnp.cross(w, _matvec(self.inertia, w)))
 
 
 class RigidBody(_Body):
@@ -92,7 +93,7 @@ def invariants(
     omega = _checks.vec3(omega, "omega")
     inertia = _checks.inertia(inertia)
     q, omega, inertia = _checks.broadcast_batch([q, omega, inertia], ["q", "omega", "inertia"], [1, 1, 2])
-    h = _apply(inertia, omega)
+    h = _matvec(inertia, omega)
     nsq = jnp.sum(q * q, -1)
     unit = q / jnp.sqrt(nsq)[..., None]
     return {

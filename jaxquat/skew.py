@@ -33,6 +33,11 @@ def hat(v: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     return _hat(_checks.vec3(v))
 
 
+def _matvec(m: Array, v: Array) -> Array:
+    """``m @ v`` for stacks of small matrices, element-wise (fuses; no batched matmul)."""
+    return jnp.sum(m * v[..., None, :], axis=-1)
+
+
 def _vee(m: Array) -> Array:
     return 0.5 * jnp.stack(
         [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], axis=-1

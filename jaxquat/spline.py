@@ -33,18 +33,15 @@ from .algebra import _conjugate, _multiply
 from .conversions import _from_rotvec, _to_rotvec
 from .interpolate import _align_signs
 from .lie import _right_jacobian, _right_jacobian_inverse
+from .skew import _matvec
 
 __all__ = ["RotationSpline"]
-
-
-def _mv(m: Array, v: Array) -> Array:
-    return jnp.sum(m * v[..., None, :], axis=-1)
 
 
 def _nonlinear_term(theta: Array, theta_dot: Array) -> Array:
     """``(d/dt J_r(theta)) theta'``: the part of the angular acceleration quadratic in ``theta'``."""
     _, djac = jax.jvp(_right_jacobian, (theta,), (theta_dot,))
-    return _mv(djac, theta_dot)
+    return _matvec(djac, theta_dot)
 
 
 def _thomas_factor(lower: Array, diag: Array, upper: Array):
@@ -64,14 +61,14 @@ def _thomas_factor(lower: Array, diag: Array, upper: Array):
 def _thomas_solve(lower: Array, c: Array, inv: Array, b: Array) -> Array:
     def forward(d_prev, blocks):
         lo, iv, bb = blocks
-        d = _mv(iv, bb - _mv(lo, d_prev))
+        d = _matvec(iv, bb - _matvec(lo, d_prev))
         return d, d
 
     _, d = jax.lax.scan(forward, jnp.zeros_like(b[0]), (lower, inv, b))
 
     def backward(x_next, blocks):
         cc, dd = blocks
-        x = dd - _mv(cc, x_next)
+        x = dd - _matvec(cc, x_next)
         return x, x
 
     _, x = jax.lax.scan(backward, jnp.zeros_like(b[0]), (c, d), reverse=True)
@@ -92,13 +89,13 @@ def _solve_rates(dt: Array, theta: Array, max_iter: int, tol: float):
     lower = jnp.concatenate([zero, 2 * a_inv[1:-1] / dt[1:-1, None, None]], axis=0)
     upper = jnp.concatenate([2 * a[1:-1] / dt[1:-1, None, None], zero], axis=0)
     b0 = 6 * (theta[:-1] / dt[:-1, None] ** 2 + theta[1:] / dt[1:, None] ** 2)
-    b0 = b0.at[0].add(-2 / dt[0] * _mv(a_inv[0], w_first))
-    b0 = b0.at[-1].add(-2 / dt[-1] * _mv(a[-1], w_last))
+    b0 = b0.at[0].add(-2 / dt[0] * _matvec(a_inv[0], w_first))
+    b0 = b0.at[-1].add(-2 / dt[-1] * _matvec(a[-1], w_last))
     c, inv = _thomas_factor(lower, diag, upper)
 
     def sweep(_, carry):
         r, done = carry
-        theta_dot = _mv(a, r)
+        theta_dot = _matvec(a, r)
         b = b0 - _nonlinear_term(theta[:-1], theta_dot[:-1])
         new = _thomas_solve(lower, c, inv, b)
         converged = jnp.all(jnp.abs(new - r[:-1]) < tol * (1 + jnp.abs(new)))
@@ -106,7 +103,7 @@ def _solve_rates(dt: Array, theta: Array, max_iter: int, tol: float):
         return r, done | converged
 
     rates, _ = jax.lax.fori_loop(0, max_iter, sweep, (rates, jnp.asarray(False)))
-    theta_dot_end = _mv(a, rates)
+    theta_dot_end = _matvec(a, rates)
     return jnp.concatenate([w_first[None], rates[:-1]], axis=0), theta_dot_end
 
 
@@ -176,8 +173,8 @@ class RotationSpline:
             return _multiply(self.keys[i], _from_rotvec(theta))
         jac = _right_jacobian(theta)
         if order == 1:
-            return _mv(jac, theta_dot)
-        return _mv(jac, theta_ddot) + _nonlinear_term(theta, theta_dot)
+            return _matvec(jac, theta_dot)
+        return _matvec(jac, theta_ddot) + _nonlinear_term(theta, theta_dot)
 
 
 def _flatten(s: RotationSpline):

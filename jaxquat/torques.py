@@ -20,7 +20,7 @@ from jaxtyping import Float
 
 from . import _checks
 from .algebra import _conjugate, _rotate
-from .inertia import _apply
+from .skew import _matvec
 
 __all__ = ["as_body_torque", "gravity_gradient_torque", "circular_orbit_gravity_gradient"]
 
@@ -74,7 +74,7 @@ def gravity_gradient_torque(
     rb = _rotate(_conjugate(q), r)
     rsq = jnp.sum(r * r, axis=-1)
     coeff = 3.0 * mu / (rsq * rsq * jnp.sqrt(rsq))
-    return coeff[..., None] * jnp.cross(rb, _apply(inertia, rb))
+    return coeff[..., None] * jnp.cross(rb, _matvec(inertia, rb))
 
 
 def circular_orbit_gravity_gradient(inertia: Float[Array, "3 3"], mean_motion: float | Array) -> TorqueFn:
