@@ -23,10 +23,18 @@ from jax import Array
 from jaxtyping import Float
 
 from . import _checks
-from .algebra import _conjugate, _multiply, _rotate
+from .algebra import _multiply
 from .inertia import _solve, _validated
 from .skew import _matvec
-from .kinematics import _alpha_from_qddot, _omega_from_qdot, _pure, _qddot_from_alpha, _vec_rate
+from .kinematics import (
+    _alpha_from_qddot,
+    _from_body,
+    _omega_from_qdot,
+    _pure,
+    _qddot_from_alpha,
+    _to_body,
+    _vec_rate,
+)
 
 __all__ = [
     "angular_momentum",
@@ -58,17 +66,14 @@ def _torque_or_zero(torque, like) -> Array:
     return jnp.zeros(jnp.shape(like)[:-1] + (3,), dtype=jnp.result_type(like)) if torque is None else torque
 
 
-def _to_body(q: Array, v: Array, frame: str) -> Array:
-    return v if frame == "body" else _rotate(_conjugate(q), v)
-
-
-def _from_body(q: Array, v: Array, frame: str) -> Array:
-    return v if frame == "body" else _rotate(q, v)
-
-
 def _euler_body(inertia: Array, w: Array, torque: Array) -> Array:
-    """``I^-1 (M - w x I w)``, all body frame."""
+    """Euler's equations solved for the acceleration, ``I^-1 (M - w x I w)``, all body frame."""
     return _solve(inertia, torque - jnp.cross(w, _matvec(inertia, w)))
+
+
+def _euler_torque_body(inertia: Array, w: Array, alpha: Array) -> Array:
+    """Euler's equations solved for the torque, ``I a + w x I w``, all body frame."""
+    return _matvec(inertia, alpha) + jnp.cross(w, _matvec(inertia, w))
 
 
 def angular_momentum(
@@ -141,7 +146,7 @@ def inverse_dynamics(
     q, omega, alpha, inertia = _args(q, {"omega": omega, "alpha": alpha}, inertia)
     w = _to_body(q, omega, frame)
     a = _to_body(q, alpha, frame)
-    return _from_body(q, _matvec(inertia, a) + jnp.cross(w, _matvec(inertia, w)), frame)
+    return _from_body(q, _euler_torque_body(inertia, w, a), frame)
 
 
 def euler_parameter_acceleration(
@@ -194,7 +199,7 @@ def euler_parameter_torque(
     q, qdot, qddot, inertia = _args(q, {}, inertia, {"qdot": qdot, "qddot": qddot})
     w = _omega_from_qdot(q, qdot, "body")
     a = _alpha_from_qddot(q, qdot, qddot, "body")
-    return _from_body(q, _matvec(inertia, a) + jnp.cross(w, _matvec(inertia, w)), frame)
+    return _from_body(q, _euler_torque_body(inertia, w, a), frame)
 
 
 def _quat_inertia_product(q: Array, inertia: Array) -> Array:

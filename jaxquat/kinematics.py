@@ -198,12 +198,14 @@ def alpha_from_qddot(
     return _alpha_from_qddot(q, qdot, qddot, frame)
 
 
-def _body_vectors(q: Array, vectors: list[Array], frame: str) -> list[Array]:
-    """Resolve space-frame vectors in the body frame (unit ``q``); body-frame ones pass through."""
-    if frame == "body":
-        return vectors
-    qc = _conjugate(q)
-    return [_rotate(qc, v) for v in vectors]
+def _to_body(q: Array, v: Array, frame: str) -> Array:
+    """Resolve a vector given in ``frame`` in the body frame (unit ``q``)."""
+    return v if frame == "body" else _rotate(_conjugate(q), v)
+
+
+def _from_body(q: Array, v: Array, frame: str) -> Array:
+    """Express a body-frame vector in ``frame`` (unit ``q``)."""
+    return v if frame == "body" else _rotate(q, v)
 
 
 def matrix_rate(
@@ -258,7 +260,7 @@ def point_velocity(
     frame = _checks.frame(frame)
     r_dot = jnp.zeros_like(_checks.vec3(r, "r")) if r_dot is None else r_dot
     q, omega, r, r_dot = _prepare([q, omega, r, r_dot], ["q", "omega", "r", "r_dot"], [4, 3, 3, 3])
-    (w,) = _body_vectors(q, [omega], frame)
+    w = _to_body(q, omega, frame)
     return _rotate(q, jnp.cross(w, r) + r_dot)
 
 
@@ -287,6 +289,6 @@ def point_acceleration(
     q, omega, alpha, r, r_dot, r_ddot = _prepare(
         [q, omega, alpha, r, r_dot, r_ddot], ["q", "omega", "alpha", "r", "r_dot", "r_ddot"], [4, 3, 3, 3, 3, 3]
     )
-    w, a = _body_vectors(q, [omega, alpha], frame)
+    w, a = _to_body(q, omega, frame), _to_body(q, alpha, frame)
     acc = jnp.cross(a, r) + jnp.cross(w, jnp.cross(w, r)) + 2.0 * jnp.cross(w, r_dot) + r_ddot
     return _rotate(q, acc)

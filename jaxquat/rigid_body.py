@@ -24,7 +24,8 @@ from jaxtyping import Float
 
 from . import _checks
 from .algebra import _multiply, _rotate
-from .inertia import _solve, _validated
+from .dynamics import _euler_body
+from .inertia import _validated
 from .skew import _matvec
 from .kinematics import _omega_from_qdot, _pure, _qddot_from_alpha
 from .torques import as_body_torque
@@ -51,7 +52,7 @@ class _Body(eqx.Module):
 
     def angular_acceleration(self, t, q: Array, w: Array, args) -> Array:
         """Euler's equations ``I^-1 (M_b - w x I w)`` (body frame)."""
-        return _solve(self.inertia, self.body_torque(t, q, w, args) - jnp.cross(w, _matvec(self.inertia, w)))
+        return _euler_body(self.inertia, w, self.body_torque(t, q, w, args))
 
 
 class RigidBody(_Body):
