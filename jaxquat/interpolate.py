@@ -71,11 +71,15 @@ def squad_control_points(keys: Float[Array, "*batch n 4"]) -> Float[Array, "*bat
     flipped into the hemisphere of its predecessor), so keys given with either
     sign give the same curve; ``log`` of a relative rotation is the shortest one.
     """
-    keys = _checks.quat(keys, "keys")
+    return _aligned_keys_and_controls(_checks.quat(keys, "keys"))[1]
+
+
+def _aligned_keys_and_controls(keys: Array) -> tuple[Array, Array]:
+    """Sign-aligned keys ``(..., n, 4)``, ``n >= 2``, and their squad control points."""
     if keys.ndim < 2 or keys.shape[-2] < 2:
         raise ValueError(f"argument 'keys' must be shaped (..., n, 4) with n >= 2, got shape {tuple(keys.shape)}")
-    keys = _align_signs(keys)
-    return keys if keys.shape[-2] == 2 else _control_points(keys)
+    aligned = _align_signs(keys)
+    return aligned, aligned if keys.shape[-2] == 2 else _control_points(aligned)
 
 
 def squad_segment(
@@ -107,8 +111,7 @@ def squad(keys: Float[Array, "n 4"], u: Float[Array, "*shape"] | float) -> Float
     if keys.ndim != 2:
         raise ValueError(f"argument 'keys' must be shaped (n, 4), got shape {tuple(keys.shape)}")
     u = _checks.scalar_like(u, "u").astype(keys.dtype)
-    controls = squad_control_points(keys)
-    aligned = _align_signs(keys)
+    aligned, controls = _aligned_keys_and_controls(keys)
     n = keys.shape[0]
     i = jnp.clip(jnp.floor(u), 0, n - 2).astype(jnp.int32)
     h = u - i.astype(u.dtype)

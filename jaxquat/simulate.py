@@ -7,7 +7,6 @@ from typing import Any, Callable, NamedTuple
 
 import diffrax
 import jax
-import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
@@ -70,15 +69,13 @@ def simulate(
     if not adaptive and dt0 is None:
         raise ValueError(f"argument 'dt0' is required with the fixed-step solver {type(solver).__name__}")
     if isinstance(solver, RigidBodySplit) and not isinstance(inertia, jax.core.Tracer):
-        off = np.asarray(inertia) - np.asarray(jnp.vectorize(jnp.diag, signature="(n)->(n,n)")(
-            jnp.diagonal(inertia, axis1=-2, axis2=-1)))
-        if np.abs(off).max() > 0:
+        if np.any(np.asarray(inertia) * (1 - np.eye(3)) != 0):  # any off-diagonal entry
             raise ValueError(
                 "argument 'inertia' must be diagonal (principal axes) for the splitting solvers; "
                 "rotate the attitude to principal axes first"
             )
     if max_steps is None:
-        span = float(np.max(np.abs(np.asarray(ts[-1] - ts[0])))) if not isinstance(ts, jax.core.Tracer) else None
+        span = None if isinstance(ts, jax.core.Tracer) else abs(float(ts[-1] - ts[0]))
         max_steps = 100_000 if (adaptive or span is None) else math.ceil(span / abs(dt0)) + len(ts) + 16
     if adaptive:
         controller = diffrax.ClipStepSizeController(diffrax.PIDController(rtol=rtol, atol=atol), step_ts=ts)
