@@ -9,12 +9,13 @@ Each module's ``__all__`` is its public surface; the package re-exports them all
 """
 
 from . import (
-    algebra, conversions, dynamics, euler, geometry, inertia, integrators, interpolate, kinematics, lie,
-    rigid_body, simulate as _simulate_module, skew, spline, tangent, torques,
+    algebra, conversions, dynamics, elliptic, euler, geometry, inertia, integrators, interpolate, kinematics, lie,
+    rigid_body, simulate as _simulate_module, skew, spline, tangent, torque_free, torques,
 )
 from .algebra import *  # noqa: F401,F403
 from .conversions import *  # noqa: F401,F403
 from .dynamics import *  # noqa: F401,F403
+from .elliptic import *  # noqa: F401,F403
 from .euler import *  # noqa: F401,F403
 from .geometry import *  # noqa: F401,F403
 from .inertia import *  # noqa: F401,F403
@@ -27,6 +28,7 @@ from .simulate import *  # noqa: F401,F403
 from .skew import *  # noqa: F401,F403
 from .spline import *  # noqa: F401,F403
 from .tangent import *  # noqa: F401,F403
+from .torque_free import *  # noqa: F401,F403
 from .torques import *  # noqa: F401,F403
 
 __version__ = "0.1.0"
@@ -45,6 +47,8 @@ __all__ = [
     *lie.__all__,
     *tangent.__all__,
     *spline.__all__,
+    *elliptic.__all__,
+    *torque_free.__all__,
     *rigid_body.__all__,
     *integrators.__all__,
     *_simulate_module.__all__,

@@ -9,10 +9,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scipy.integrate import solve_ivp
 
 import jaxquat as jq
-from helpers import DTYPE, X64, assert_close, central_difference_jacobian
+from helpers import DTYPE, X64, assert_close, central_difference_jacobian, dop853_reference
 
 I_DIAG = np.array([1.0, 2.0, 3.0])
 W0 = np.array([1.0, 0.1, 0.5])
@@ -26,16 +25,7 @@ SOLVERS = {
 
 
 def _dop853(t_end, ts, inertia=I_DIAG, w0=W0):
-    """Independent reference: the raw 7-state ODE in NumPy, DOP853 at rtol = atol = 1e-13."""
-
-    def rhs(t, y):
-        q, w = y[:4], y[4:]
-        qd = 0.5 * np.array([-q[1:] @ w, *(q[0] * w + np.cross(q[1:], w))])
-        return np.concatenate([qd, np.cross(inertia * w, w) / inertia])
-
-    y0 = np.concatenate([[1.0, 0, 0, 0], w0])
-    sol = solve_ivp(rhs, (0, t_end), y0, method="DOP853", rtol=1e-13, atol=1e-13, t_eval=ts)
-    return sol.y[:4].T, sol.y[4:].T
+    return dop853_reference(np.array([1.0, 0, 0, 0]), w0, inertia, ts)
 
 
 def _symmetric_top(ts, it, i3, w0):

@@ -1,0 +1,132 @@
+"""Jacobi elliptic functions and Carlson integrals: against scipy, the m -> 1 limit
+(tanh/sech and the first-order expansion in 1 - m), identities, derivatives, batching
+and bad input."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.special as sp
+from hypothesis import given
+from jax.test_util import check_grads  # eps=1e-6: its default 1e-4 step is too coarse for K near m = 1
+
+from jaxquat import elliptic as el
+from jaxquat import ellipj, ellipk, elliprf, elliprj
+from helpers import DTYPE, NP_DTYPE, X64, assert_close, seeds
+
+N = 64
+TOL = 1e-13 if X64 else 3e-5
+_ellipj = jax.jit(ellipj)
+_jacobi = jax.jit(el._jacobi)
+
+
+def _draw(seed):
+    rng = np.random.default_rng(seed)
+    u = rng.uniform(-25, 25, N)
+    m = np.concatenate([rng.uniform(0, 0.99, N - 8), [0.0, 1e-12, 0.5, 0.9, 0.99, 0.999, 1e-3, 0.25]])
+    return u.astype(NP_DTYPE), m.astype(NP_DTYPE)
+
+
+@given(seeds)
+def test_ellipj_matches_scipy(seed):
+    u, m = _draw(seed)
+    ours = _ellipj(jnp.asarray(u), jnp.asarray(m))
+    ref = sp.ellipj(u.astype(np.float64), m.astype(np.float64))
+    # |u| up to 25 carries the phase error eps * |u| (a few float32 ulps of 25 in float32).
+    tol = TOL * 25
+    for name, a, b in zip(["sn", "cn", "dn", "am"], ours, ref):
+        assert a.dtype == DTYPE
+        assert_close(a, b, tol=tol * (np.abs(b).max() if name == "am" else 1), what=name)
+
+
+@given(seeds)
+def test_identities(seed):
+    u, m = _draw(seed)
+    sn, cn, dn, am = _ellipj(jnp.asarray(u), jnp.asarray(m))
+    assert_close(sn * sn + cn * cn, np.ones(N), tol=TOL, what="sn^2 + cn^2")
+    assert_close(dn * dn + m * sn * sn, np.ones(N), tol=TOL, what="dn^2 + m sn^2")
+    # d am / du = dn, by autodiff through the Landen recurrence.
+    dam = jax.vmap(jax.grad(lambda a, b: ellipj(a, b)[3]))(jnp.asarray(u), jnp.asarray(m))
+    assert_close(dam, dn, tol=10 * TOL, what="d am/du")
+
+
+def test_separatrix_limit():
+    """m -> 1: tanh/sech at m = 1, and A&S 16.15's first-order expansion in mc = 1 - m
+    (its error is O(mc^2)), with mc formed exactly (it never passes through 1 - m)."""
+    u = jnp.linspace(-12.0, 12.0, 49, dtype=DTYPE)
+    sn, cn, dn, am = _jacobi(u, jnp.ones_like(u), jnp.zeros_like(u))
+    assert_close(sn, np.tanh(u), tol=TOL, what="sn(u|1)")
+    assert_close(cn, 1 / np.cosh(u), tol=TOL, what="cn(u|1)")
+    assert_close(dn, 1 / np.cosh(u), tol=TOL, what="dn(u|1)")
+    mc = 1e-12
+    u64 = np.asarray(u, np.float64)
+    sn, cn, dn, _ = _jacobi(u, jnp.full_like(u, 1 - mc), jnp.full_like(u, mc))
+    ch, th, k = np.cosh(u64), np.tanh(u64), mc / 4 * (np.sinh(u64) * np.cosh(u64) - u64)
+    assert_close(sn, th + k / ch**2, tol=TOL, what="sn near m = 1")
+    assert_close(cn, 1 / ch - k * th / ch, tol=TOL, what="cn near m = 1")
+
+
+def test_complete_and_carlson_against_scipy():
+    rng = np.random.default_rng(3)
+    m = np.concatenate([rng.uniform(0, 1, 40), 1 - 10.0 ** -np.arange(1, 9 if X64 else 6)])
+    assert_close(ellipk(jnp.asarray(m, DTYPE)) / sp.ellipk(m), np.ones_like(m), tol=TOL * 10, what="K")
+    # The domain the propagator uses: z = 1, x in [0, 1], y in (0, 1], p >= 1; and generic positive triples.
+    x = np.concatenate([rng.uniform(0, 1, 30), [0.0, 1e-300 if X64 else 1e-37]])
+    y = np.concatenate([10.0 ** rng.uniform(-12, 0, 30), [1e-30, 0.5]])
+    p = rng.uniform(1, 6, 32)
+    z = np.ones_like(x)
+    assert_close(elliprf(*(jnp.asarray(v, DTYPE) for v in (x, y, z))) / sp.elliprf(x, y, z), np.ones(32), tol=TOL * 10, what="R_F")
+    assert_close(elliprj(*(jnp.asarray(v, DTYPE) for v in (x, y, z, p))) / sp.elliprj(x, y, z, p), np.ones(32), tol=TOL * 10, what="R_J")
+    a, b, c, d = rng.uniform(0.01, 10, (4, 32))
+    assert_close(elliprj(*(jnp.asarray(v, DTYPE) for v in (a, b, c, d))) / sp.elliprj(a, b, c, d), np.ones(32), tol=TOL * 10, what="R_J generic")
+
+
+def test_incomplete_integrals_unwrap():
+    """F and Pi of an amplitude beyond pi/2 add whole complete integrals (checked against
+    scipy's ellipkinc and a scipy R_F/R_J reference)."""
+    rng = np.random.default_rng(4)
+    phi = rng.uniform(-9, 9, 24)
+    m, n = rng.uniform(0, 0.95, 24), -rng.uniform(0, 4, 24)
+    f, pi = el._incomplete(jnp.asarray(phi, DTYPE)[None], jnp.asarray(m, DTYPE), jnp.asarray(1 - m, DTYPE), jnp.asarray(n, DTYPE))
+    j = np.round(phi / np.pi)
+    r = phi - j * np.pi
+    assert_close(f[0], 2 * j * sp.ellipk(m) + sp.ellipkinc(r, m), tol=TOL * 20, what="F")
+
+    def pi_ref(phi_):
+        s, c = np.sin(phi_), np.cos(phi_)
+        return s * sp.elliprf(c * c, 1 - m * s * s, 1) + n / 3 * s**3 * sp.elliprj(c * c, 1 - m * s * s, 1, 1 - n * s * s)
+
+    assert_close(pi[0], 2 * j * pi_ref(np.pi / 2) + pi_ref(r), tol=TOL * 20, what="Pi")
+
+
+@pytest.mark.skipif(not X64, reason="finite differences need float64")
+def test_gradients():
+    u = jnp.asarray([0.3, -2.0, 7.5])
+    for m in (jnp.asarray([0.2, 0.7, 0.95]), jnp.asarray([0.0, 0.0, 0.0])):
+        # m = 0 is smooth: the AGM's first step is written without sqrt(m).
+        check_grads(lambda a, b: jnp.stack(ellipj(a, b)), (u, m), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6, eps=1e-6)
+    x, y, p = jnp.asarray([0.2, 0.9]), jnp.asarray([0.5, 0.01]), jnp.asarray([1.5, 3.0])
+    check_grads(lambda a, b, c: elliprj(a, b, 1.0, c), (x, y, p), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6, eps=1e-6)
+    check_grads(lambda a, b: elliprf(a, b, 1.0), (x, y), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6, eps=1e-6)
+
+
+def test_jit_vmap_and_broadcasting():
+    u, m = _draw(9)
+    eager = ellipj(jnp.asarray(u), jnp.asarray(m))
+    mapped = jax.vmap(ellipj)(jnp.asarray(u), jnp.asarray(m))
+    nested = ellipj(jnp.asarray(u).reshape(8, 8), jnp.asarray(m).reshape(8, 8))
+    for e, a, b in zip(eager, mapped, nested):
+        assert_close(a, e, tol=TOL, what="vmap")
+        assert_close(b.reshape(-1), e, tol=TOL, what="nested")
+    assert ellipj(jnp.asarray(u), 0.5)[0].shape == (N,)  # scalar m broadcasts
+
+
+def test_bad_input():
+    with pytest.raises(TypeError, match="argument 'm' must have a floating dtype"):
+        ellipj(jnp.ones(3), jnp.ones(3, jnp.int32))
+    with pytest.raises(TypeError, match="argument 'p'"):
+        elliprj(1.0, 1.0, 1.0, jnp.ones(2, jnp.int32))
+    with pytest.raises(ValueError, match="broadcast"):
+        ellipj(jnp.ones(3), jnp.ones(4))
