@@ -7,12 +7,17 @@ from typing import Any, Callable, NamedTuple
 
 import diffrax
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
 from . import _checks
+from .algebra import _conjugate, _multiply
+from .conversions import _to_matrix
 from .integrators import RKMK45, RigidBodySplit, _RKMK
 from .rigid_body import RigidBody
+from .skew import _matvec
+from .torque_free import principal_axes
 
 __all__ = ["Simulation", "simulate"]
 
@@ -53,7 +58,10 @@ def simulate(
     (``rtol``, ``atol``) that is made to step exactly onto every ``ts`` (so saved
     states are step ends, not interpolants). A fixed-step solver
     (``LieEuler``, ``RKMK4``, the splittings, or any diffrax solver without an
-    error estimate) needs ``dt0``. ``adjoint`` defaults to diffrax's
+    error estimate) needs ``dt0``. The splitting solvers (``RigidBodySplit*``,
+    ``EulerPoinsotSplit*``) work in principal axes: a full (or traced) tensor
+    is diagonalised with :func:`jaxquat.principal_axes` and the results are
+    rotated back (its derivative needs distinct principal moments). ``adjoint`` defaults to diffrax's
     ``RecursiveCheckpointAdjoint``; ``progress=True`` shows a tqdm bar.
     """
     q0 = _checks.quat(q0, "q0")
@@ -68,12 +76,7 @@ def simulate(
     adaptive = _has_error_estimate(solver)
     if not adaptive and dt0 is None:
         raise ValueError(f"argument 'dt0' is required with the fixed-step solver {type(solver).__name__}")
-    if isinstance(solver, RigidBodySplit) and not isinstance(inertia, jax.core.Tracer):
-        if np.any(np.asarray(inertia) * (1 - np.eye(3)) != 0):  # any off-diagonal entry
-            raise ValueError(
-                "argument 'inertia' must be diagonal (principal axes) for the splitting solvers; "
-                "rotate the attitude to principal axes first"
-            )
+    principal = isinstance(solver, RigidBodySplit) and not _is_concrete_diagonal(inertia)
     if max_steps is None:
         span = None if isinstance(ts, jax.core.Tracer) else abs(float(ts[-1] - ts[0]))
         max_steps = 100_000 if (adaptive or span is None) else math.ceil(span / abs(dt0)) + len(ts) + 16
@@ -85,12 +88,19 @@ def simulate(
     meter = diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter()
 
     def one(q, w, inertia_1):
+        if principal:  # the splittings work in principal axes: rotate there and back
+            moments, q_axes = principal_axes(inertia_1)
+            r = _to_matrix(q_axes)
+            q, w, inertia_1 = _multiply(q, q_axes), _matvec(jnp.swapaxes(r, -1, -2), w), jnp.diag(moments)
         term = diffrax.ODETerm(RigidBody(inertia_1, torque, torque_frame))
         sol = diffrax.diffeqsolve(
             term, solver, ts[0], ts[-1], dt0, (q, w), args=args, saveat=diffrax.SaveAt(ts=ts),
             stepsize_controller=controller, adjoint=adjoint, max_steps=max_steps, progress_meter=meter,
         )
-        return sol.ys[0], sol.ys[1], sol
+        qs, ws = sol.ys
+        if principal:
+            qs, ws = _multiply(qs, _conjugate(q_axes)[None]), jnp.einsum("ij,nj->ni", r, ws)
+        return qs, ws, sol
 
     batch = q0.shape[:-1]
     flat = [x.reshape((-1,) + x.shape[len(batch):]) for x in (q0, omega0, inertia)]
@@ -99,6 +109,13 @@ def simulate(
         n = len(ts)
         return Simulation(qs.reshape(batch + (n, 4)), ws.reshape(batch + (n, 3)), sol)
     return Simulation(*one(q0, omega0, inertia))
+
+
+def _is_concrete_diagonal(inertia) -> bool:
+    """A concrete tensor with zero off-diagonal entries (traced values count as full)."""
+    if isinstance(inertia, jax.core.Tracer):
+        return False
+    return not np.any(np.asarray(inertia) * (1 - np.eye(3)) != 0)
 
 
 def _has_error_estimate(solver) -> bool:

@@ -189,6 +189,17 @@ def _minimal_rotation(n: Array, e: Array) -> Array:
     return p / jnp.linalg.norm(p, axis=-1, keepdims=True)
 
 
+def _propagate(q0: Array, omega0: Array, moments: Array, t: Array) -> tuple[Array, Array]:
+    """:func:`euler_poinsot` without argument checks (arrays already broadcast)."""
+    general, safe_w, safe_i, roles = _safe_state(moments, omega0)
+    q_gen, w_gen = _general(q0, safe_w, safe_i, t, *roles)
+    q_steady = _multiply(q0, _from_rotvec(omega0 * t[..., None]))
+    return (
+        jnp.where(general[..., None], q_gen, q_steady),
+        jnp.where(general[..., None], w_gen, omega0),
+    )
+
+
 def euler_poinsot(
     q0: Float[Array, "*batch 4"],
     omega0: Float[Array, "*batch 3"],
@@ -217,13 +228,7 @@ def euler_poinsot(
     moments = _validated_moments(moments)
     t = _checks.scalar_like(t, "t")
     q0, omega0, moments, t = _checks.broadcast_batch([q0, omega0, moments, t], ["q0", "omega0", "moments", "t"], [1, 1, 1, 0])
-    general, safe_w, safe_i, roles = _safe_state(moments, omega0)
-    q_gen, w_gen = _general(q0, safe_w, safe_i, t, *roles)
-    q_steady = _multiply(q0, _from_rotvec(omega0 * t[..., None]))
-    return (
-        jnp.where(general[..., None], q_gen, q_steady),
-        jnp.where(general[..., None], w_gen, omega0),
-    )
+    return _propagate(q0, omega0, moments, t)
 
 
 def polhode_period(omega0: Float[Array, "*batch 3"], moments: Float[Array, "*batch 3"]) -> Float[Array, "*batch"]:
