@@ -17,16 +17,19 @@ $(STAMP): $(PY) pyproject.toml
 demo: $(STAMP)
 	$(PY) examples/demo.py
 
-# The whole suite, once in float64 and once in float32.
+# The whole suite, once in float64 and once in float32, on two worker processes
+# (pytest-xdist; a test file stays on one worker so its jitted functions compile once).
+PYTEST := $(PY) -m pytest -n 2 --dist loadfile
+
 test: $(STAMP)
-	JAX_ENABLE_X64=1 $(PY) -m pytest
-	JAX_ENABLE_X64=0 $(PY) -m pytest
+	JAX_ENABLE_X64=1 $(PYTEST)
+	JAX_ENABLE_X64=0 $(PYTEST)
 
 test64: $(STAMP)
-	JAX_ENABLE_X64=1 $(PY) -m pytest
+	JAX_ENABLE_X64=1 $(PYTEST)
 
 test32: $(STAMP)
-	JAX_ENABLE_X64=0 $(PY) -m pytest
+	JAX_ENABLE_X64=0 $(PYTEST)
 
 bench: $(STAMP)
 	$(PY) benchmarks/ops.py --write docs/benchmarks.md

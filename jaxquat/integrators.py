@@ -99,6 +99,13 @@ class _LieSolver(diffrax.AbstractSolver):
     interpolation_cls: ClassVar = SlerpInterpolation
 
     def init(self, terms, t0, t1, y0, args):
+        ok = isinstance(y0, tuple) and len(y0) == 2 and all(hasattr(x, "shape") for x in y0)
+        if not ok or y0[0].shape[-1:] != (4,) or y0[1].shape[-1:] != (3,):
+            raise TypeError(
+                f"{type(self).__name__} advances the rigid-body state (q (..., 4), w (..., 3)) only. With "
+                "diffrax.BacksolveAdjoint the backward pass solves an augmented system: give it a generic "
+                "solver, e.g. BacksolveAdjoint(solver=diffrax.Tsit5(), stepsize_controller=diffrax.PIDController(...))"
+            )
         return None
 
     def func(self, terms, t0, y0, args):
@@ -246,18 +253,17 @@ class RigidBodySplit(_LieSolver):
             w = jax.lax.fori_loop(0, self.kick_iterations + 1, sweep, w_free)
         return q, w
 
-    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+    def _body(self, terms) -> RigidBody:
         inner = terms
         while not hasattr(inner, "vector_field") and hasattr(inner, "term"):
             inner = inner.term  # diffrax wraps the user's term (WrapTerm)
         rb = getattr(inner, "vector_field", None)
         if not isinstance(rb, RigidBody):
             raise TypeError(f"{type(self).__name__} needs diffrax.ODETerm(jaxquat.RigidBody(...)), got {type(rb).__name__}")
-        off_diagonal = jnp.any(rb.inertia * (1 - jnp.eye(3, dtype=rb.inertia.dtype)) != 0)
-        rb = eqx.tree_at(lambda b: b.inertia, rb, eqx.error_if(
-            rb.inertia, off_diagonal,
-            f"{type(self).__name__} needs the inertia in principal axes (a diagonal tensor): use "
-            "jaxquat.principal_axes, or jaxquat.simulate, which rotates to principal axes itself"))
+        return rb
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        rb = self._body(terms)
         h = terms.contr(t0, t1)
         q, w = y0
         weights = jnp.asarray(self.weights, w.dtype)
@@ -269,8 +275,15 @@ class RigidBodySplit(_LieSolver):
             return self._strang(rb, t0 + offset * h, weight * h, qq, ww, args), None
 
         (q1, w1), _ = jax.lax.scan(sub, (q, w), (weights, offsets))
+        # A run-time check (under jit the inertia's values are unknown at trace time).
+        off_diagonal = jnp.any(rb.inertia * (1 - jnp.eye(3, dtype=rb.inertia.dtype)) != 0)
+        q1 = eqx.error_if(
+            q1, off_diagonal,
+            f"{type(self).__name__} needs the inertia in principal axes (a diagonal tensor): use "
+            "jaxquat.principal_axes, or jaxquat.simulate, which rotates to principal axes itself",
+        )
         y1 = (q1, w1)
-        return y1, None, dict(y0=y0, y1=y1), None, _RESULTS.successful
+        return y1, None, dict(y0=y0, y1=y1), solver_state, _RESULTS.successful
 
 
 _CBRT2 = 2.0 ** (1.0 / 3.0)

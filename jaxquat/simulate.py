@@ -14,7 +14,7 @@ from jax import Array
 from . import _checks
 from .algebra import _conjugate, _multiply
 from .conversions import _to_matrix
-from .integrators import RKMK45, RigidBodySplit, _RKMK
+from .integrators import RKMK45, EulerPoinsotSplit, RigidBodySplit, _RKMK
 from .rigid_body import RigidBody
 from .skew import _matvec
 from .torque_free import principal_axes
@@ -54,8 +54,11 @@ def simulate(
     ``inertia`` ``(..., 3, 3)`` body tensor; their leading axes broadcast and are
     mapped with ``vmap``. ``torque``: ``fn(t, q, w, args)`` in ``torque_frame``.
 
-    ``solver`` defaults to :class:`jaxquat.RKMK45` with a PID controller
-    (``rtol``, ``atol``) that is made to step exactly onto every ``ts`` (so saved
+    ``solver`` defaults to :class:`jaxquat.EulerPoinsotSplit` when there is no
+    torque: the exact Euler-Poinsot flow, one step from each saved time to the
+    next (``diffrax.StepTo(ts)``), error at rounding level at any ``t``. With a
+    torque it defaults to :class:`jaxquat.RKMK45` with a PID controller
+    (``rtol``, ``atol``) made to step exactly onto every ``ts`` (so saved
     states are step ends, not interpolants). A fixed-step solver
     (``LieEuler``, ``RKMK4``, the splittings, or any diffrax solver without an
     error estimate) needs ``dt0``. The splitting solvers (``RigidBodySplit*``,
@@ -72,15 +75,24 @@ def simulate(
         raise ValueError(f"argument 'ts' must be shaped (n,) with n >= 2, got shape {tuple(ts.shape)}")
     q0, omega0, inertia = _checks.broadcast_batch([q0, omega0, inertia], ["q0", "omega0", "inertia"], [1, 1, 2])
     ts = ts.astype(q0.dtype)
-    solver = RKMK45() if solver is None else solver
+    if solver is None:
+        solver = EulerPoinsotSplit() if torque is None else RKMK45()
     adaptive = _has_error_estimate(solver)
-    if not adaptive and dt0 is None:
+    # Torque-free, the exact flow needs no step control: step straight from one saved time to the next.
+    exact = isinstance(solver, EulerPoinsotSplit) and torque is None and dt0 is None
+    if not (adaptive or exact) and dt0 is None:
         raise ValueError(f"argument 'dt0' is required with the fixed-step solver {type(solver).__name__}")
     principal = isinstance(solver, RigidBodySplit) and not _is_concrete_diagonal(inertia)
     if max_steps is None:
-        span = None if isinstance(ts, jax.core.Tracer) else abs(float(ts[-1] - ts[0]))
-        max_steps = 100_000 if (adaptive or span is None) else math.ceil(span / abs(dt0)) + len(ts) + 16
-    if adaptive:
+        # numpy, not jnp: inside jit even a concrete ts would be traced by ts[-1] - ts[0]
+        span = None if isinstance(ts, jax.core.Tracer) else abs(float(np.asarray(ts)[-1] - np.asarray(ts)[0]))
+        if exact:
+            max_steps = len(ts)
+        else:
+            max_steps = 100_000 if (adaptive or span is None) else math.ceil(span / abs(dt0)) + len(ts) + 16
+    if exact:
+        controller = diffrax.StepTo(ts)
+    elif adaptive:
         controller = diffrax.ClipStepSizeController(diffrax.PIDController(rtol=rtol, atol=atol), step_ts=ts)
     else:
         controller = diffrax.ConstantStepSize()
