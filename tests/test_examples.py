@@ -38,3 +38,21 @@ def test_spline_plot_example(tmp_path):
     assert (tmp_path / "rotation_spline.png").stat().st_size > 10_000
     jumps = [float(x) for x in re.findall(r"([\d.]+e[-+]\d+) rad/s", text)]
     assert len(jumps) == 2 and max(jumps) < 1e-5, text
+
+
+def test_dzhanibekov_example(tmp_path):
+    text = _run("examples/dzhanibekov.py", "--t-end", "20", "--out", str(tmp_path))
+    rel = float(re.search(r"relative difference ([\d.e+-]+)", text).group(1))
+    assert rel < 1e-6, text  # measured flip interval vs 2 K(m) / lambda
+    rk = float(re.search(r"max attitude difference ([\d.e+-]+) rad", text).group(1))
+    assert rk < 1e-6, text  # RKMK45 at rtol 1e-10 tracks the exact solution
+    assert (tmp_path / "dzhanibekov.png").stat().st_size > 10_000
+
+
+def test_min_energy_slew_example(tmp_path):
+    text = _run("examples/min_energy_slew.py", "--outer", "4", "--inner", "30", "--steps", "100", "--out", str(tmp_path))
+    excess = float(re.search(r"optimum 12 theta\^2 / T\^3 = [\d.]+: ([+-][\d.]+) %", text).group(1))
+    assert abs(excess) < 0.5, text  # the target: within 0.5 % of the analytic optimum
+    att, rate = (float(x) for x in re.search(r"terminal attitude error ([\d.e+-]+) rad, terminal rate ([\d.e+-]+)", text).groups())
+    assert att < 1e-4 and rate < 1e-4, text
+    assert (tmp_path / "min_energy_slew.png").stat().st_size > 10_000
