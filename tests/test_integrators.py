@@ -94,25 +94,30 @@ def _fixed(solver, dt, t_end):
     return sol.ys[0]
 
 
-@pytest.mark.skipif(not X64, reason="finite differences need float64")
-def test_gradients_through_the_solve_match_finite_differences():
-    """grad of a final-attitude loss w.r.t. omega0, the inertia and a torque parameter
-    (RecursiveCheckpointAdjoint), against central differences; finite for a body at rest."""
-    target = jq.from_rotvec(jnp.asarray([0.3, -0.2, 0.5]))
+_TARGET = np.asarray([0.3, -0.2, 0.5])
+_GRAD_ARGS = (np.asarray([0.4, -0.2, 0.3]), np.asarray([1.0, 2.0, 2.5]), np.asarray(0.7))
 
-    def torque(t, q, w, k):
-        return jnp.broadcast_to(k * jnp.asarray([0.1, -0.2, 0.05]), w.shape)
 
+def _constant_torque(t, q, w, k):
+    return jnp.broadcast_to(k * jnp.asarray([0.1, -0.2, 0.05]), w.shape)
+
+
+def _final_attitude_loss(**simulate_options):
+    """loss(omega0, principal moments, torque gain) on the attitude at t = 1.5."""
     def loss(w0, moments, k):
         sim = jq.simulate(jq.identity(), w0, jnp.diag(moments), jnp.asarray([0.0, 1.5]),
-                          torque=torque, args=k, solver=jq.RKMK4(), dt0=0.01)
-        return jnp.sum((sim.q[-1] - target) ** 2)
+                          torque=_constant_torque, args=k, **simulate_options)
+        return jnp.sum((sim.q[-1] - jq.from_rotvec(jnp.asarray(_TARGET))) ** 2)
 
-    args = (jnp.asarray([0.4, -0.2, 0.3]), jnp.asarray([1.0, 2.0, 2.5]), jnp.asarray(0.7))
+    return loss
+
+
+def _check_gradients_against_central_differences(loss, what):
+    """jax.grad in each argument against central differences, 1e-6 relative to the largest entry."""
+    args = tuple(jnp.asarray(a) for a in _GRAD_ARGS)
     grad_fn = jax.jit(jax.grad(loss, argnums=(0, 1, 2)))
     loss_fn = jax.jit(loss)  # one compilation serves every finite-difference evaluation
-    grads = grad_fn(*args)
-    for i, g in enumerate(grads):
+    for i, g in enumerate(grad_fn(*args)):
         def partial(x, i=i):
             a = list(args)
             a[i] = x
@@ -120,8 +125,17 @@ def test_gradients_through_the_solve_match_finite_differences():
 
         fd = central_difference_jacobian(partial, np.asarray(args[i]), h=1e-6)
         scale = max(1e-3, float(np.abs(fd).max()))
-        assert_close(np.asarray(g) / scale, fd / scale, tol=1e-6, what=f"gradient {i}")
-    at_rest = grad_fn(jnp.zeros(3), args[1], args[2])
+        assert_close(np.asarray(g) / scale, fd / scale, tol=1e-6, what=f"{what} gradient {i}")
+    return grad_fn
+
+
+@pytest.mark.skipif(not X64, reason="finite differences need float64")
+def test_gradients_through_the_solve_match_finite_differences():
+    """grad of a final-attitude loss w.r.t. omega0, the inertia and a torque parameter
+    (RecursiveCheckpointAdjoint), against central differences; finite for a body at rest."""
+    grad_fn = _check_gradients_against_central_differences(
+        _final_attitude_loss(solver=jq.RKMK4(), dt0=0.01), "RecursiveCheckpointAdjoint")
+    at_rest = grad_fn(jnp.zeros(3), jnp.asarray(_GRAD_ARGS[1]), jnp.asarray(_GRAD_ARGS[2]))
     assert all(np.all(np.isfinite(np.asarray(g))) for g in at_rest)
 
 
@@ -227,29 +241,9 @@ def test_backsolve_adjoint_gradients():
     vector-space) pass with a generic solver. Gradients in omega0, the inertia and a torque
     parameter agree with central differences to 1e-6 relative; asking the Lie solver itself
     to solve the augmented system raises a clear error."""
-    target = jq.from_rotvec(jnp.asarray([0.3, -0.2, 0.5]))
-
-    def torque(t, q, w, k):
-        return jnp.broadcast_to(k * jnp.asarray([0.1, -0.2, 0.05]), w.shape)
-
     backward = diffrax.BacksolveAdjoint(solver=diffrax.Tsit5(), stepsize_controller=diffrax.PIDController(rtol=1e-11, atol=1e-11))
-
-    def loss(w0, moments, k, adjoint=backward):
-        sim = jq.simulate(jq.identity(), w0, jnp.diag(moments), jnp.asarray([0.0, 1.5]), torque=torque, args=k,
-                          rtol=1e-11, atol=1e-11, adjoint=adjoint)
-        return jnp.sum((sim.q[-1] - target) ** 2)
-
-    args = (jnp.asarray([0.4, -0.2, 0.3]), jnp.asarray([1.0, 2.0, 2.5]), jnp.asarray(0.7))
-    grads = jax.jit(jax.grad(loss, argnums=(0, 1, 2)))(*args)
-    loss_fn = jax.jit(loss)
-    for i, g in enumerate(grads):
-        def partial(x, i=i):
-            a = list(args)
-            a[i] = x
-            return loss_fn(*a)
-
-        fd = central_difference_jacobian(partial, np.asarray(args[i]), h=1e-6)
-        scale = max(1e-3, float(np.abs(fd).max()))
-        assert_close(np.asarray(g) / scale, fd / scale, tol=1e-6, what=f"BacksolveAdjoint gradient {i}")
+    _check_gradients_against_central_differences(
+        _final_attitude_loss(rtol=1e-11, atol=1e-11, adjoint=backward), "BacksolveAdjoint")
+    lie_backward = _final_attitude_loss(rtol=1e-11, atol=1e-11, adjoint=diffrax.BacksolveAdjoint())
     with pytest.raises(TypeError, match="BacksolveAdjoint"):
-        jax.grad(loss)(*args, adjoint=diffrax.BacksolveAdjoint())
+        jax.grad(lie_backward)(*(jnp.asarray(a) for a in _GRAD_ARGS))
