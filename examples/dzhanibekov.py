@@ -31,7 +31,7 @@ def t_handle():
     pts = jnp.asarray([[0.0, 0.0, 0.0], [0.6, 0.0, 0.0], [0.6, 0.4, 0.0], [0.6, -0.4, 0.0]])
     masses = jnp.asarray([0.5, 0.5, 0.2, 0.2])
     pts = pts - (masses[:, None] * pts).sum(0) / masses.sum()
-    moments, q_axes = jq.principal_axes(jq.inertia_from_points(pts, masses))
+    moments, _ = jq.principal_axes(jq.inertia_from_points(pts, masses))
     return moments
 
 
