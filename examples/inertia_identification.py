@@ -25,9 +25,9 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-import optax  # noqa: E402
 
 import jaxquat as jq  # noqa: E402
+from _lbfgs import minimize  # noqa: E402
 
 TS = jnp.linspace(0.0, 20.0, 201)
 TRUE_INERTIA = jnp.asarray([[1.2, 0.15, -0.1], [0.15, 0.9, 0.05], [-0.1, 0.05, 0.9]])
@@ -80,21 +80,9 @@ def fit(meas, iters):
         weight = (TS <= window).astype(meas.dtype)
         return jnp.sum(weight[:, None] * jq.minus(model, meas) ** 2)
 
-    opt = optax.lbfgs()
-
     @jax.jit
     def run(p, window):
-        f = lambda x: loss(x, window)  # noqa: E731
-        value_and_grad = optax.value_and_grad_from_state(f)
-
-        def body(carry, _):
-            x, state = carry
-            value, grad = value_and_grad(x, state=state)
-            updates, state = opt.update(grad, state, x, value=value, grad=grad, value_fn=f)
-            return (optax.apply_updates(x, updates), state), value
-
-        (x, _), values = jax.lax.scan(body, (p, opt.init(p)), None, length=iters // len(WINDOWS))
-        return x, values
+        return minimize(lambda x: loss(x, window), p, iters // len(WINDOWS))
 
     p, history = initial_guess(meas), []
     for window in WINDOWS:

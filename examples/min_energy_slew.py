@@ -24,9 +24,9 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-import optax  # noqa: E402
 
 import jaxquat as jq  # noqa: E402
+from _lbfgs import minimize  # noqa: E402
 
 T = 2.0
 THETA = np.pi / 2
@@ -67,21 +67,11 @@ def solve(nodes_n=21, outer=6, inner=60, steps=200, verbose=True):
     rng = np.random.default_rng(0)
     nodes = jnp.asarray(0.1 * rng.normal(size=(nodes_n, 3)))  # a generic start, not the eigenaxis solution
     lam, mu = jnp.zeros(6), 100.0
-    opt = optax.lbfgs()
     terminal_j = jax.jit(terminal)
 
     @jax.jit
     def inner_solve(nodes, lam, mu):
-        f = lambda x: lagrangian(x, lam, mu)  # noqa: E731
-        value_and_grad = optax.value_and_grad_from_state(f)
-
-        def body(carry, _):
-            x, state = carry
-            value, grad = value_and_grad(x, state=state)
-            updates, state = opt.update(grad, state, x, value=value, grad=grad, value_fn=f)
-            return (optax.apply_updates(x, updates), state), value
-
-        (x, _), values = jax.lax.scan(body, (nodes, opt.init(nodes)), None, length=inner)
+        x, values = minimize(lambda x: lagrangian(x, lam, mu), nodes, inner)
         return x, values[-1]
 
     for k in range(outer):
