@@ -78,13 +78,17 @@ def _amplitude(u: Array, steps: Array, a_last: Array) -> Array:
     return phi
 
 
+def _sn_cn_dn(phi: Array, m: Array, mc: Array) -> tuple[Array, Array, Array]:
+    """``sn, cn, dn`` from the amplitude ``phi = am(u | m)``."""
+    sn, cn = jnp.sin(phi), jnp.cos(phi)
+    return sn, cn, jnp.sqrt(mc + m * cn * cn)  # dn = sqrt(1 - m sn^2), no cancellation near m = 1
+
+
 def _jacobi(u: Array, m: Array, mc: Array) -> tuple[Array, Array, Array, Array]:
     """``sn, cn, dn, am`` with the complementary parameter ``mc = 1 - m`` given separately."""
     steps, a_last = _agm(m, mc)
     phi = _amplitude(u, steps, a_last)
-    sn, cn = jnp.sin(phi), jnp.cos(phi)
-    dn = jnp.sqrt(mc + m * cn * cn)  # = sqrt(1 - m sn^2), no cancellation near m = 1
-    return sn, cn, dn, phi
+    return (*_sn_cn_dn(phi, m, mc), phi)
 
 
 def _quarter_period(m: Array, mc: Array) -> Array:

@@ -288,13 +288,14 @@ class RigidBodySplit(_LieSolver):
 
 _CBRT2 = 2.0 ** (1.0 / 3.0)
 _W1 = 1.0 / (2.0 - _CBRT2)
+_YOSHIDA = (_W1, 1.0 - 2.0 * _W1, _W1)  # triple-jump weights: order 2 -> 4
 
 
 class RigidBodySplit4(RigidBodySplit):
     """Yoshida's fourth-order triple jump of :class:`RigidBodySplit`: weights ``(w1, w0, w1)``,
     ``w1 = 1/(2 - 2^(1/3))``, ``w0 = 1 - 2 w1``. Fixed steps; 3 Strang steps per step."""
 
-    weights: ClassVar[tuple[float, ...]] = (_W1, 1.0 - 2.0 * _W1, _W1)
+    weights: ClassVar[tuple[float, ...]] = _YOSHIDA
 
     def order(self, terms):
         return 4
@@ -318,7 +319,7 @@ class EulerPoinsotSplit(RigidBodySplit):
 class EulerPoinsotSplit4(EulerPoinsotSplit):
     """Yoshida's triple jump of :class:`EulerPoinsotSplit`: order 4 with torques, exact without."""
 
-    weights: ClassVar[tuple[float, ...]] = (_W1, 1.0 - 2.0 * _W1, _W1)
+    weights: ClassVar[tuple[float, ...]] = _YOSHIDA
 
     def order(self, terms):
         return 4

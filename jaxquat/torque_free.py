@@ -48,7 +48,7 @@ from jaxtyping import Float
 from . import _checks, _safe
 from .algebra import _conjugate, _multiply
 from .conversions import _from_matrix_shepperd, _from_rotvec
-from .elliptic import _agm, _amplitude, _incomplete, _quarter_period
+from .elliptic import _agm, _amplitude, _incomplete, _quarter_period, _sn_cn_dn
 from .inertia import _validated
 
 __all__ = ["euler_poinsot", "principal_axes", "polhode_period"]
@@ -80,7 +80,8 @@ def principal_axes(inertia: Float[Array, "*batch 3 3"]) -> tuple[Float[Array, "*
 
 
 def _roles(moments: Array, omega: Array):
-    """Axis roles ``(a, b, c)`` as one-hot weights, and whether the polhode circles the largest axis."""
+    """Axis indices ``(a, b, c)``: ``a`` the axis the polhode circles (the largest moment when
+    ``|L|^2 > 2 E I_mid``, else the smallest), ``b`` the middle one, ``c`` the other extreme."""
     order = jnp.argsort(moments, axis=-1)
     lo, mid, hi = order[..., 0], order[..., 1], order[..., 2]
     i_mid = jnp.take_along_axis(moments, mid[..., None], axis=-1)[..., 0]
@@ -145,9 +146,7 @@ def _general(q0: Array, w0: Array, moments: Array, t: Array, a: Array, b: Array,
 
     # Angular velocity by the addition theorems in v = lambda t (smooth at a pure spin about a).
     steps, a_last = _agm(m, mc)
-    phi_v = _amplitude(lam * t, steps, a_last)
-    sn_v, cn_v = jnp.sin(phi_v), jnp.cos(phi_v)
-    dn_v = jnp.sqrt(mc + m * cn_v * cn_v)
+    sn_v, cn_v, dn_v = _sn_cn_dn(_amplitude(lam * t, steps, a_last), m, mc)
     den = 1 - g * wb_hat * wb_hat * sn_v * sn_v
     wc_t = (wc * cn_v - r_cb * wb_hat * dn0 * sn_v * dn_v) / den
     wb_hat_t = (wb_hat * cn_v * dn_v + wc * dn0 * sn_v / r_cb) / den
