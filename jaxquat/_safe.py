@@ -73,9 +73,19 @@ def atan2_over_n(nsq: Array, w: Array) -> Array:
     return jnp.where(small, taylor, jnp.arctan2(n_safe, w) / n_safe)
 
 
+def dot(a: Array, b: Array) -> Array:
+    """``sum(a * b)`` over the last axis (size 3 or 4), written out per component: XLA fuses
+    it into the surrounding expression, while a reduction over a minor axis that short
+    compiles to a slow loop on CPU."""
+    total = a[..., 0] * b[..., 0]
+    for i in range(1, a.shape[-1]):
+        total = total + a[..., i] * b[..., i]
+    return total
+
+
 def norm_sq(x: Array, axis: int = -1) -> Array:
     """Sum of squares along ``axis``."""
-    return jnp.sum(x * x, axis=axis)
+    return dot(x, x) if axis in (-1, x.ndim - 1) else jnp.sum(x * x, axis=axis)
 
 
 def safe_sqrt(s: Array) -> Array:

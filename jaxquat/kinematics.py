@@ -27,7 +27,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks
+from . import _checks, _safe
 from .algebra import _conjugate, _multiply, _rotate
 from .conversions import _to_matrix
 from .skew import _hat
@@ -50,10 +50,6 @@ def _pure(v: Array) -> Array:
     return jnp.concatenate([jnp.zeros_like(v[..., :1]), v], axis=-1)
 
 
-def _dot(a: Array, b: Array) -> Array:
-    return jnp.sum(a * b, axis=-1)
-
-
 def _vec_rate(q: Array, qdot: Array, frame: str) -> Array:
     """``vec(q* qdot)`` (body) or ``vec(qdot q*)`` (space): half the angular velocity times ``|q|^2``."""
     prod = _multiply(_conjugate(q), qdot) if frame == "body" else _multiply(qdot, _conjugate(q))
@@ -66,24 +62,24 @@ def _qdot_from_omega(q: Array, omega: Array, frame: str) -> Array:
 
 
 def _omega_from_qdot(q: Array, qdot: Array, frame: str) -> Array:
-    return 2.0 * _vec_rate(q, qdot, frame) / _dot(q, q)[..., None]
+    return 2.0 * _vec_rate(q, qdot, frame) / _safe.dot(q, q)[..., None]
 
 
 def _qddot_from_alpha(q: Array, qdot: Array, alpha: Array, frame: str) -> Array:
-    nsq = _dot(q, q)[..., None]
+    nsq = _safe.dot(q, q)[..., None]
     rate = _vec_rate(q, qdot, frame)
     # s = q* qddot (body) or qddot q* (space), solved from the alpha relation;
     # its scalar part q.qddot = -|qdot|^2 keeps d^2|q|^2/dt^2 = 0.
-    s_vec = 0.5 * nsq * alpha + 2.0 * _dot(q, qdot)[..., None] * rate / nsq
-    s = jnp.concatenate([-_dot(qdot, qdot)[..., None], s_vec], axis=-1)
+    s_vec = 0.5 * nsq * alpha + 2.0 * _safe.dot(q, qdot)[..., None] * rate / nsq
+    s = jnp.concatenate([-_safe.dot(qdot, qdot)[..., None], s_vec], axis=-1)
     return (_multiply(q, s) if frame == "body" else _multiply(s, q)) / nsq
 
 
 def _alpha_from_qddot(q: Array, qdot: Array, qddot: Array, frame: str) -> Array:
-    nsq = _dot(q, q)[..., None]
+    nsq = _safe.dot(q, q)[..., None]
     acc = _vec_rate(q, qddot, frame)
     rate = _vec_rate(q, qdot, frame)
-    return 2.0 * acc / nsq - 4.0 * _dot(q, qdot)[..., None] * rate / (nsq * nsq)
+    return 2.0 * acc / nsq - 4.0 * _safe.dot(q, qdot)[..., None] * rate / (nsq * nsq)
 
 
 def _prepare(arrays, names, kinds):

@@ -51,8 +51,11 @@ def simulate(
     """Integrate the rigid body ``(q, w_b)`` from ``ts[0]`` and return the state at every ``ts``.
 
     ``q0`` ``(..., 4)`` (unit), ``omega0`` ``(..., 3)`` body angular velocity,
-    ``inertia`` ``(..., 3, 3)`` body tensor; their leading axes broadcast and are
-    mapped with ``vmap``. ``torque``: ``fn(t, q, w, args)`` in ``torque_frame``.
+    ``inertia`` ``(..., 3, 3)`` body tensor; their leading axes broadcast. A batch is
+    solved as one stacked state with fixed steps or the exact flow, and with ``vmap``
+    (a step size per body) with an adaptive solver. ``torque``: ``fn(t, q, w, args)`` in
+    ``torque_frame``, written for one body (``q`` ``(4,)``, ``w`` ``(3,)``; it is vmapped
+    over a batch, ``args`` shared).
 
     ``solver`` defaults to :class:`jaxquat.EulerPoinsotSplit` when there is no
     torque: the exact Euler-Poinsot flow, one step from each saved time to the
@@ -99,28 +102,35 @@ def simulate(
     adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
     meter = diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter()
 
-    def one(q, w, inertia_1):
+    def solve(q, w, inertia_1, torque_fn):
+        """One diffeqsolve of a body, or of a whole batch stacked on the leading axis."""
         if principal:  # the splittings work in principal axes: rotate there and back
             moments, q_axes = principal_axes(inertia_1)
             r = _to_matrix(q_axes)
-            q, w, inertia_1 = _multiply(q, q_axes), _matvec(jnp.swapaxes(r, -1, -2), w), jnp.diag(moments)
-        term = diffrax.ODETerm(RigidBody(inertia_1, torque, torque_frame))
+            q, w = _multiply(q, q_axes), _matvec(jnp.swapaxes(r, -1, -2), w)
+            inertia_1 = moments[..., None] * jnp.eye(3, dtype=moments.dtype)
+        term = diffrax.ODETerm(RigidBody(inertia_1, torque_fn, torque_frame))
         sol = diffrax.diffeqsolve(
             term, solver, ts[0], ts[-1], dt0, (q, w), args=args, saveat=diffrax.SaveAt(ts=ts),
             stepsize_controller=controller, adjoint=adjoint, max_steps=max_steps, progress_meter=meter,
         )
         qs, ws = sol.ys
         if principal:
-            qs, ws = _multiply(qs, _conjugate(q_axes)[None]), jnp.einsum("ij,nj->ni", r, ws)
+            qs, ws = _multiply(qs, _conjugate(q_axes)[None]), _matvec(r[None], ws)
         return qs, ws, sol
 
     batch = q0.shape[:-1]
+    if not batch:
+        return Simulation(*solve(q0, omega0, inertia, torque))
+    n = len(ts)
     flat = [x.reshape((-1,) + x.shape[len(batch):]) for x in (q0, omega0, inertia)]
-    if batch:
-        qs, ws, sol = jax.vmap(one)(*flat)
-        n = len(ts)
-        return Simulation(qs.reshape(batch + (n, 4)), ws.reshape(batch + (n, 3)), sol)
-    return Simulation(*one(q0, omega0, inertia))
+    if adaptive:  # each body its own step sizes
+        qs, ws, sol = jax.vmap(lambda q, w, i: solve(q, w, i, torque))(*flat)
+    else:  # fixed steps: one solve of the stacked batch (diffrax's per-step work is shared)
+        per_body = None if torque is None else jax.vmap(torque, in_axes=(None, 0, 0, None))
+        qs, ws, sol = solve(*flat, per_body)
+        qs, ws = jnp.swapaxes(qs, 0, 1), jnp.swapaxes(ws, 0, 1)
+    return Simulation(qs.reshape(batch + (n, 4)), ws.reshape(batch + (n, 3)), sol)
 
 
 def _is_concrete_diagonal(inertia) -> bool:

@@ -34,8 +34,11 @@ def hat(v: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
 
 
 def _matvec(m: Array, v: Array) -> Array:
-    """``m @ v`` for stacks of small matrices, element-wise (fuses; no batched matmul)."""
-    return jnp.sum(m * v[..., None, :], axis=-1)
+    """``m @ v`` for stacks of 3x3 matrices, written out per component: XLA fuses it, while a
+    ``sum`` over the minor axis of size 3 compiles to a slow reduction loop on CPU (measured 20x)."""
+    return jnp.stack(
+        [m[..., i, 0] * v[..., 0] + m[..., i, 1] * v[..., 1] + m[..., i, 2] * v[..., 2] for i in range(3)], axis=-1
+    )
 
 
 def _vee(m: Array) -> Array:
