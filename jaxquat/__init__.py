@@ -10,7 +10,7 @@ Each module's ``__all__`` is its public surface; the package re-exports them all
 
 from . import (
     algebra, conversions, dynamics, elliptic, euler, geometry, inertia, integrators, interpolate, kinematics, lie,
-    rigid_body, simulate as _simulate_module, skew, spline, tangent, torque_free, torques,
+    rigid_body, simulate as _simulate_module, skew, spline, tangent, time_optimal, torque_free, torques,
 )
 from .algebra import *  # noqa: F401,F403
 from .conversions import *  # noqa: F401,F403
@@ -28,6 +28,7 @@ from .simulate import *  # noqa: F401,F403
 from .skew import *  # noqa: F401,F403
 from .spline import *  # noqa: F401,F403
 from .tangent import *  # noqa: F401,F403
+from .time_optimal import *  # noqa: F401,F403
 from .torque_free import *  # noqa: F401,F403
 from .torques import *  # noqa: F401,F403
 
@@ -52,4 +53,5 @@ __all__ = [
     *rigid_body.__all__,
     *integrators.__all__,
     *_simulate_module.__all__,
+    *time_optimal.__all__,
 ]

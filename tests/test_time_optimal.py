@@ -1,0 +1,114 @@
+"""minimum_time_reorientation: feasibility checked by an independent integrator, the
+near-eigenaxis closed form, bang-bang structure, warm starts, bad input.
+
+The optimiser runs eagerly (jitted inner solves) and needs float64 for tight terminal
+conditions, so these run in the float64 pass; small problems keep them fast."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+from scipy.spatial.transform import Rotation
+
+import jaxquat as jq
+from helpers import X64
+
+pytestmark = pytest.mark.skipif(not X64, reason="the optimiser needs float64 for 1e-6 terminal conditions")
+
+FAST = dict(intervals=10, starts=4, outer=6, inner=80)
+INERTIA = np.array([[1.2, 0.1, 0.0], [0.1, 1.0, -0.05], [0.0, -0.05, 0.8]])
+BOUND = np.array([1.0, 0.8, 0.6])
+Q0 = np.array([1.0, 0.0, 0.0, 0.0])
+QF = np.array([np.cos(0.6), 0.0, np.sin(0.6) * 0.6, np.sin(0.6) * 0.8])  # 1.2 rad about (0, .6, .8)
+WF = np.array([0.0, 0.0, 0.2])
+
+
+@pytest.fixture(scope="module")
+def asymmetric():
+    return jq.minimum_time_reorientation(INERTIA, BOUND, Q0, QF, omegaf=WF, **FAST)
+
+
+def _scipy_rollout(inertia, controls, time, q0, w0):
+    """Independent check: DOP853 (rtol 1e-12) through each interval of held torque."""
+    inv = np.linalg.inv(inertia)
+
+    def f(_, y, u):
+        q, w = y[:4], y[4:]
+        qdot = 0.5 * np.array([-q[1:] @ w, *(q[0] * w + np.cross(q[1:], w))])
+        return np.concatenate([qdot, inv @ (u - np.cross(w, inertia @ w))])
+
+    y = np.concatenate([q0, w0])
+    h = time / len(controls)
+    for u in controls:
+        y = solve_ivp(f, (0, h), y, args=(u,), method="DOP853", rtol=1e-12, atol=1e-12).y[:, -1]
+    return y[:4] / np.linalg.norm(y[:4]), y[4:]
+
+
+def test_result_satisfies_the_terminal_conditions_by_an_independent_integrator(asymmetric):
+    r = asymmetric
+    assert float(r.violation) < 1e-5
+    q, w = _scipy_rollout(INERTIA, np.asarray(r.controls), float(r.time), Q0, np.zeros(3))
+    err = (Rotation.from_quat(np.roll(q, -1)).inv() * Rotation.from_quat(np.roll(QF, -1))).magnitude()
+    assert err < 1e-5 and np.abs(w - WF).max() < 1e-5
+
+
+def test_result_fields_are_consistent(asymmetric):
+    r = asymmetric
+    n = FAST["intervals"] * 4 + 1
+    assert r.ts.shape == (n,) and r.q.shape == (n, 4) and r.omega.shape == (n, 3) and r.torque.shape == (n, 3)
+    assert r.controls.shape == (FAST["intervals"], 3) and r.start_times.shape == (FAST["starts"],)
+    np.testing.assert_allclose(r.ts[-1], r.time, rtol=1e-14)
+    np.testing.assert_allclose(r.q[0], Q0, atol=1e-15)
+    np.testing.assert_allclose(jnp.linalg.norm(r.q, axis=-1), 1.0, atol=1e-13)
+    assert np.all(np.abs(np.asarray(r.torque)) <= BOUND * (1 + 1e-12))
+    assert float(jq.angle_between(r.q[-1], jnp.asarray(QF))) < 1e-5
+    np.testing.assert_allclose(r.omega[-1], WF, atol=1e-5)
+    assert float(r.time) == np.min(np.asarray(r.start_times))
+
+
+def test_single_axis_authority_gives_the_eigenaxis_bang_bang_time():
+    """With almost no torque on y and z, a rest-to-rest turn by theta about x is the double
+    integrator's bang-bang: T = 2 sqrt(theta I_x / b_x), exactly representable on an even
+    number of intervals (the switch falls on the midpoint)."""
+    theta, ix, bx = 1.0, 2.0, 0.5
+    r = jq.minimum_time_reorientation(np.diag([ix, 1.0, 1.0]), [bx, 1e-6, 1e-6], Q0,
+                                      [np.cos(theta / 2), np.sin(theta / 2), 0, 0], **FAST)
+    assert float(r.violation) < 1e-6
+    np.testing.assert_allclose(float(r.time), 2 * np.sqrt(theta * ix / bx), rtol=1e-5)
+    u = np.asarray(r.controls)[:, 0] / bx
+    np.testing.assert_allclose(u, np.where(np.arange(10) < 5, 1.0, -1.0), atol=1e-3)
+
+
+def test_symmetric_180_beats_the_eigenaxis_time_with_bang_bang_torque():
+    r = jq.minimum_time_reorientation(np.eye(3), np.ones(3), Q0, [0.0, 1.0, 0.0, 0.0], **FAST)
+    assert float(r.violation) < 1e-5
+    assert float(r.time) < 2 * np.sqrt(np.pi) * 0.98  # the eigenaxis manoeuvre takes 2 sqrt(pi)
+    assert np.mean(np.abs(np.asarray(r.controls)) > 0.99) > 0.7  # most of the time at the bounds
+
+
+def test_warm_start_keeps_feasibility_and_does_not_lose_time(asymmetric):
+    """(Same intervals as the fixture, so the suite compiles the solver once; the example
+    warm-starts onto 2x and 4x the intervals.)"""
+    finer = jq.minimum_time_reorientation(INERTIA, BOUND, Q0, QF, omegaf=WF, **dict(FAST, outer=3), init=asymmetric)
+    assert float(finer.violation) < 1e-5
+    assert float(finer.time) <= float(asymmetric.time) * (1 + 1e-6)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(inertia=np.eye(2)), r"'inertia'.*3, 3\)"),
+        (dict(torque_bound=[1.0, -1.0, 1.0]), "'torque_bound' must be positive"),
+        (dict(torque_bound=[1.0, 1.0]), r"'torque_bound'.*\(\.\.\., 3\)"),
+        (dict(q0=np.ones((2, 4))), "'q0' must be a single value"),
+        (dict(qf=[1.0, 0.0, 0.0]), r"'qf'.*\(\.\.\., 4\)"),
+        (dict(omega0=np.ones(4)), r"'omega0'.*\(\.\.\., 3\)"),
+    ],
+)
+def test_bad_input_raises_naming_the_argument(kwargs, match):
+    args = dict(inertia=np.eye(3), torque_bound=np.ones(3), q0=Q0, qf=QF)
+    args.update(kwargs)
+    with pytest.raises((ValueError, TypeError), match=match):
+        jq.minimum_time_reorientation(**args, intervals=4, starts=1, outer=1, inner=1)
