@@ -1,0 +1,31 @@
+"""The notebooks in examples/notebooks/ execute top to bottom (their cells assert their claims).
+
+They switch float64 on themselves, so they run in the float64 pass only, each in its own kernel."""
+
+from __future__ import annotations
+
+import pathlib
+
+import pytest
+
+from helpers import X64
+
+ROOT = pathlib.Path(__file__).parent.parent
+NOTEBOOKS = sorted((ROOT / "examples" / "notebooks").glob("*.ipynb"))
+pytestmark = pytest.mark.skipif(not X64, reason="notebooks run in float64 by design; once per make test")
+
+
+def test_there_are_notebooks():
+    assert {p.name for p in NOTEBOOKS} >= {"tour.ipynb", "slew.ipynb"}
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.name)
+def test_notebook_executes(path):
+    nbformat = pytest.importorskip("nbformat")
+    nbclient = pytest.importorskip("nbclient")
+    nb = nbformat.read(path, as_version=4)
+    client = nbclient.NotebookClient(nb, timeout=300, kernel_name="python3",
+                                     resources={"metadata": {"path": str(path.parent)}})
+    client.execute()  # raises CellExecutionError, with the cell and traceback, if any cell fails
+    errors = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []) if o.get("output_type") == "error"]
+    assert not errors
