@@ -27,7 +27,7 @@ local coordinates obey ``theta' = J_r(theta)^-1 w`` (:func:`jaxquat.right_jacobi
 its series truncated after the terms the order needs: a polynomial)
 and ``w' = f(t, q_n Exp(theta), w)``, a system in a vector space to which an
 explicit Runge-Kutta tableau is applied; then ``q_(n+1) = q_n Exp(theta_1)``.
-The stages are unrolled (XLA fuses each stage's arithmetic). Cost per step:
+The stages run in a ``lax.fori_loop`` (the vector field compiles once). Cost per step:
 one vector-field call per stage (4 for RKMK4, 7 for RKMK45), two cross products
 per stage, one ``Exp`` per stage whose vector field reads ``q`` and one to finish.
 
@@ -140,21 +140,27 @@ def _dexpinv(theta: Array, w: Array, order: int) -> Array:
 def _rkmk_step(vf, t0, h, q: Array, w: Array, tableau, order: int):
     """One Runge-Kutta-Munthe-Kaas step of ``(q, w)`` for ``w' = vf(t, q, w)``, ``q' = q w/2``.
 
-    The stages are unrolled in Python (a tableau has at most 7), so XLA fuses each
-    stage's arithmetic. Returns ``(q1, w1)`` and, when the tableau has an embedded
-    pair, the difference from the embedded solution ``(q1 - q_emb, w1 - w_emb)``.
+    The stages run in a ``lax.fori_loop``, so the vector field is traced and compiled
+    once whatever the number of stages (unrolled, the fast variant of the slew example
+    took 48 s instead of 29 s, nearly all compilation, for at most 10 % more throughput). Returns ``(q1, w1)``
+    and, when the tableau has an embedded pair, the difference from the embedded
+    solution ``(q1 - q_emb, w1 - w_emb)``.
     """
     c, a, b, b_emb = (np.asarray(x, dtype=np.float64) for x in tableau)
-    k_theta, k_w = [], []
-    for i in range(len(c)):
-        theta = h * sum((float(a[i, j]) * k for j, k in enumerate(k_theta) if a[i, j] != 0), jnp.zeros_like(w))
-        wi = w + h * sum((float(a[i, j]) * k for j, k in enumerate(k_w) if a[i, j] != 0), jnp.zeros_like(w))
-        qi = q if i == 0 else _multiply(q, _from_rotvec(theta))
-        k_theta.append(wi if i == 0 else _dexpinv(theta, wi, order))
-        k_w.append(vf(t0 + float(c[i]) * h, qi, wi))
+    a_arr, c_arr = jnp.asarray(a, w.dtype), jnp.asarray(c, w.dtype)
+
+    def stage(i, ks):
+        k_theta, k_w = ks
+        theta = h * jnp.tensordot(a_arr[i], k_theta, axes=1)
+        wi = w + h * jnp.tensordot(a_arr[i], k_w, axes=1)
+        wdot = vf(t0 + c_arr[i] * h, _multiply(q, _from_rotvec(theta)), wi)
+        return k_theta.at[i].set(_dexpinv(theta, wi, order)), k_w.at[i].set(wdot)
+
+    zeros = jnp.zeros((len(c),) + w.shape, w.dtype)
+    k_theta, k_w = jax.lax.fori_loop(0, len(c), stage, (zeros, zeros))
 
     def combine(weights, ks):
-        return h * sum((float(wt) * k for wt, k in zip(weights, ks) if wt != 0), jnp.zeros_like(w))
+        return h * jnp.tensordot(jnp.asarray(weights, w.dtype), ks, axes=1)
 
     theta1 = combine(b, k_theta)
     q1, w1 = _multiply(q, _from_rotvec(theta1)), w + combine(b, k_w)
