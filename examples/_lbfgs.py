@@ -1,9 +1,12 @@
-"""A fixed number of optax L-BFGS iterations in one jitted lax.scan (shared by the examples)."""
+"""L-BFGS for the examples: a fixed number of optax L-BFGS iterations in one jitted lax.scan.
+
+The loop itself is jaxquat's own (the one minimum_time_reorientation runs); this module
+only gives it the name the examples use.
+"""
 
 from __future__ import annotations
 
-import jax
-import optax
+from jaxquat.time_optimal import _lbfgs
 
 
 def minimize(f, x0, iters: int):
@@ -12,14 +15,4 @@ def minimize(f, x0, iters: int):
     Returns the final parameters and the objective value at every iteration. Call it inside
     ``jax.jit`` so the loop compiles once.
     """
-    opt = optax.lbfgs()
-    value_and_grad = optax.value_and_grad_from_state(f)
-
-    def body(carry, _):
-        x, state = carry
-        value, grad = value_and_grad(x, state=state)
-        updates, state = opt.update(grad, state, x, value=value, grad=grad, value_fn=f)
-        return (optax.apply_updates(x, updates), state), value
-
-    (x, _), values = jax.lax.scan(body, (x0, opt.init(x0)), None, length=iters)
-    return x, values
+    return _lbfgs(f, x0, iters)

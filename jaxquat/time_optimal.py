@@ -95,19 +95,22 @@ def _residual(q, w, qf, wf):
     return jnp.concatenate([minus(q, qf), w - wf])
 
 
-def _lbfgs(f, x0, iters: int):
-    """``iters`` optax L-BFGS steps (zoom line search) in one ``lax.scan``."""
-    opt = optax.lbfgs(memory_size=_MEMORY, linesearch=optax.scale_by_zoom_linesearch(max_linesearch_steps=_LINESEARCH_STEPS))
+def _lbfgs(f, x0, iters: int, memory_size: int = 10, linesearch_steps: int = 20):
+    """``iters`` optax L-BFGS steps (zoom line search) on ``f`` from ``x0`` (any pytree) in one
+    ``lax.scan``; returns the final parameters and ``f`` at every iteration. (The examples
+    use it too, through ``examples/_lbfgs.py``.)"""
+    opt = optax.lbfgs(memory_size=memory_size,
+                      linesearch=optax.scale_by_zoom_linesearch(max_linesearch_steps=linesearch_steps))
     value_and_grad = optax.value_and_grad_from_state(f)
 
     def body(carry, _):
         x, state = carry
         value, grad = value_and_grad(x, state=state)
         updates, state = opt.update(grad, state, x, value=value, grad=grad, value_fn=f)
-        return (optax.apply_updates(x, updates), state), None
+        return (optax.apply_updates(x, updates), state), value
 
-    (x, _), _ = jax.lax.scan(body, (x0, opt.init(x0)), None, length=iters)
-    return x
+    (x, _), values = jax.lax.scan(body, (x0, opt.init(x0)), None, length=iters)
+    return x, values
 
 
 def _reference_time(inertia, bound, q0, qf, w0, wf) -> float:
@@ -187,7 +190,7 @@ def _solve(x, lam, mu, pr: _Problem, substeps: int, inner: int):
             c = _terminal_residual(z, pr, substeps)
             return _unpack(z, pr)[0] + lam1 @ c + 0.5 * mu1 * c @ c
 
-        x1 = _lbfgs(lagrangian, x1, inner)
+        x1, _ = _lbfgs(lagrangian, x1, inner, _MEMORY, _LINESEARCH_STEPS)
         x_pol = _polish(x1, pr, substeps)
         return x1, _terminal_residual(x1, pr, substeps), x_pol, _terminal_residual(x_pol, pr, substeps), \
             _unpack(x_pol, pr)[0]

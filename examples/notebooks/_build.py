@@ -94,7 +94,6 @@ Gradients flow through the simulation."""),
 jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp
 import numpy as np
-import optax
 import jaxquat as jq
 
 T, THETA, N = 2.0, np.pi / 2, 20
@@ -115,20 +114,16 @@ def terminal(u):
 def energy(u):
     return T / N * jnp.sum(u * u)"""),
 ("md", "Augmented Lagrangian: a few outer multiplier updates around a jitted L-BFGS inner loop."),
-("code", """opt = optax.lbfgs()
+("code", """import sys
+sys.path.insert(0, "..")  # examples/_lbfgs.py: optax L-BFGS iterations in one lax.scan
+from _lbfgs import minimize
 
 @jax.jit
 def inner(u, lam, mu):
     def f(x):
         c = terminal(x)
         return energy(x) + lam @ c + 0.5 * mu * c @ c
-    vg = optax.value_and_grad_from_state(f)
-    def body(carry, _):
-        x, state = carry
-        value, grad = vg(x, state=state)
-        updates, state = opt.update(grad, state, x, value=value, grad=grad, value_fn=f)
-        return (optax.apply_updates(x, updates), state), value
-    (u, _), values = jax.lax.scan(body, (u, opt.init(u)), None, length=40)
+    u, values = minimize(f, u, 40)
     return u, values[-1]
 
 u = 0.1 * jax.random.normal(jax.random.PRNGKey(0), (N, 3))
