@@ -3,6 +3,7 @@ PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
+BENCH_STAMP := $(VENV)/.installed-bench
 
 .PHONY: demo test test64 test32 bench clean
 
@@ -11,8 +12,13 @@ $(PY):
 
 $(STAMP): $(PY) pyproject.toml
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[test,bench]"
+	$(PY) -m pip install --quiet -e ".[test]"
 	touch $(STAMP)
+
+# The peers the benchmarks compare against (MuJoCo MJX among them): only `make bench` needs them.
+$(BENCH_STAMP): $(STAMP)
+	$(PY) -m pip install --quiet -e ".[test,bench]"
+	touch $(BENCH_STAMP)
 
 demo: $(STAMP)
 	$(PY) examples/demo.py
@@ -31,8 +37,10 @@ test64: $(STAMP)
 test32: $(STAMP)
 	JAX_ENABLE_X64=0 $(PYTEST)
 
-bench: $(STAMP)
+# Rewrites the generated sections of docs/benchmarks.md (the text around them stays).
+bench: $(BENCH_STAMP)
 	$(PY) benchmarks/ops.py --write docs/benchmarks.md
+	$(PY) benchmarks/simulation.py --write docs/benchmarks.md
 
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis

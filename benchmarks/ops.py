@@ -1,4 +1,5 @@
-"""Rotation-op throughput: jaxquat against jaxlie and scipy (on JAX arrays), as ratios.
+"""Rotation-op throughput: jaxquat against jaxlie, scipy (on JAX and on NumPy arrays) and
+numpy-quaternion, as ratios, at several batch sizes, in float32 and float64, and under jax.grad.
 
 Every contender runs in this process on the same inputs, jitted (scipy 1.17's
 ``Rotation`` traces under ``jax.jit`` with ``SCIPY_ARRAY_API=1``), timed after
@@ -7,17 +8,14 @@ runs. The roofline is a jitted element-wise ``a + b`` over two ``(N, 4)``
 arrays, the memory-traffic floor for an op that reads two quaternion arrays and
 writes one.
 
-    python benchmarks/ops.py [--n 1000000] [--dtype float32] [--write docs/benchmarks.md]
+    python benchmarks/ops.py [--n 1 1000 1000000] [--dtype float32 float64] [--no-grad] [--write docs/benchmarks.md]
 """
 
 from __future__ import annotations
 
 import argparse
 import os
-import platform
-import statistics
 import sys
-import time
 
 os.environ.setdefault("SCIPY_ARRAY_API", "1")  # must precede the scipy import
 
@@ -27,17 +25,7 @@ import jaxlie  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 import jaxquat as jq  # noqa: E402
-
-
-def _time(fn, *args, repeats: int) -> float:
-    jax.block_until_ready(fn(*args))  # compile and warm up
-    jax.block_until_ready(fn(*args))
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+from _report import machine, median_time as _time, write_section  # noqa: E402
 
 
 def _xyzw(q):
@@ -103,10 +91,83 @@ def contenders():
             "jaxlie": None,  # jaxlie has only roll/pitch/yaw (as_rpy_radians); not the same quantity set
             "scipy": lambda p, q, v, m, t: sp(p).as_euler("xyz"),
         },
+        "from_euler (xyz)": {
+            "jaxquat": lambda p, q, v, m, t: jq.from_euler(v, "xyz"),
+            "jaxlie": None,
+            "scipy": lambda p, q, v, m, t: _wxyz(Rotation.from_euler("xyz", v).as_quat()),
+        },
+        "mean (of the batch)": {
+            "jaxquat": lambda p, q, v, m, t: jq.mean(p),
+            "jaxlie": None,
+            "scipy": lambda p, q, v, m, t: _wxyz(sp(p).mean().as_quat()),
+        },
+        "align_vectors (batch of pairs)": {
+            "jaxquat": lambda p, q, v, m, t: jq.align_vectors(v, jq.rotate(q, v)),
+            "jaxlie": None,
+            "scipy": lambda p, q, v, m, t: _wxyz(Rotation.align_vectors(sp(q).apply(v), v)[0].as_quat()),
+        },
     }
 
 
-def run(n: int, dtype, repeats: int):
+def numpy_contenders():
+    """The same ops on NumPy arrays, not jitted: scipy's Rotation and numpy-quaternion."""
+    import numpy as np
+    import quaternion as nq
+    from scipy.spatial.transform import Rotation as R
+
+    def sp(q):
+        return R.from_quat(np.roll(q, -1, -1))
+
+    def nqa(q):
+        return nq.as_quat_array(q)
+
+    return {
+        "multiply": {"scipy (NumPy)": lambda p, q, v, m, t: (sp(p) * sp(q)).as_quat(),
+                     "numpy-quaternion": lambda p, q, v, m, t: nqa(p) * nqa(q)},
+        # (nq.rotate_vectors applies every rotation to every vector: an outer product, not this op)
+        "rotate": {"scipy (NumPy)": lambda p, q, v, m, t: sp(p).apply(v),
+                   "numpy-quaternion": lambda p, q, v, m, t: nq.as_vector_part(
+                       nqa(p) * nq.from_vector_part(v) * nqa(p).conjugate())},
+        "to_matrix": {"scipy (NumPy)": lambda p, q, v, m, t: sp(p).as_matrix(),
+                      "numpy-quaternion": lambda p, q, v, m, t: nq.as_rotation_matrix(nqa(p))},
+        "from_matrix": {"scipy (NumPy)": lambda p, q, v, m, t: R.from_matrix(m).as_quat(),
+                        "numpy-quaternion": lambda p, q, v, m, t: nq.from_rotation_matrix(m)},
+        "slerp": {"scipy (NumPy)": lambda p, q, v, m, t: (sp(p) * R.from_rotvec(
+                      t[:, None] * (sp(p).inv() * sp(q)).as_rotvec())).as_quat(),
+                  "numpy-quaternion": lambda p, q, v, m, t: nqa(p) * np.power(nqa(p).conjugate() * nqa(q), t)},
+        "to_rotvec": {"scipy (NumPy)": lambda p, q, v, m, t: sp(p).as_rotvec(),
+                      "numpy-quaternion": lambda p, q, v, m, t: nq.as_rotation_vector(nqa(p))},
+        "from_rotvec": {"scipy (NumPy)": lambda p, q, v, m, t: R.from_rotvec(v).as_quat(),
+                        "numpy-quaternion": lambda p, q, v, m, t: nq.from_rotation_vector(v)},
+        "to_euler (xyz)": {"scipy (NumPy)": lambda p, q, v, m, t: sp(p).as_euler("xyz"), "numpy-quaternion": None},
+        "from_euler (xyz)": {"scipy (NumPy)": lambda p, q, v, m, t: R.from_euler("xyz", v).as_quat(),
+                             "numpy-quaternion": None},
+        "mean (of the batch)": {"scipy (NumPy)": lambda p, q, v, m, t: sp(p).mean().as_quat(), "numpy-quaternion": None},
+        "align_vectors (batch of pairs)": {"scipy (NumPy)": lambda p, q, v, m, t: R.align_vectors(sp(q).apply(v), v)[0].as_quat(),
+                                           "numpy-quaternion": None},
+    }
+
+
+# Under jax.grad: d sum(op) / d (its first array input); which input each op reads first.
+GRAD_INPUT = {"multiply": 0, "rotate": 0, "to_matrix": 0, "from_matrix": 3, "slerp": 0, "to_rotvec": 0,
+              "from_rotvec": 2, "to_euler (xyz)": 0, "from_euler (xyz)": 2, "mean (of the batch)": 0,
+              "align_vectors (batch of pairs)": 2}
+
+
+def _grad_of(fn, index):
+    def total(*args):
+        return jnp.sum(fn(*args))
+
+    return jax.grad(total, argnums=index)
+
+
+PEERS = ("jaxlie", "scipy", "scipy (NumPy)", "numpy-quaternion")
+
+
+def run(n: int, dtype, repeats: int, grad: bool):
+    """Times per op and library (seconds; None where a library lacks the op or fails to trace)."""
+    import numpy as np
+
     key = jax.random.PRNGKey(0)
     k1, k2, k3, k4 = jax.random.split(key, 4)
     p = jq.random(k1, (n,), dtype)
@@ -115,77 +176,69 @@ def run(n: int, dtype, repeats: int):
     t = jax.random.uniform(k4, (n,), dtype)
     m = jax.jit(jq.to_matrix)(p)
     args = (p, q, v, m, t)
+    np_args = tuple(np.asarray(x) for x in args)
     roof = _time(jax.jit(lambda a, b: a + b), p, q, repeats=repeats)
+    numpy_side = {} if grad else numpy_contenders()
     rows = []
     for op, libs in contenders().items():
         times = {}
         for lib, fn in libs.items():
-            if fn is None:
+            if grad and fn is not None:
+                fn = _grad_of(fn, GRAD_INPUT[op])
+            try:
+                times[lib] = None if fn is None else _time(jax.jit(fn), *args, repeats=repeats)
+            except Exception:  # e.g. scipy's array-API path under jax.grad
                 times[lib] = None
-                continue
-            times[lib] = _time(jax.jit(fn), *args, repeats=repeats)
+        for lib, fn in numpy_side.get(op, {}).items():
+            try:
+                times[lib] = None if fn is None else _time(fn, *np_args, repeats=max(3, repeats // 3))
+            except (TypeError, ValueError):  # e.g. numpy-quaternion's slerp takes one scalar t only
+                times[lib] = None
         rows.append((op, times))
     return roof, rows
 
 
-def table(n, dtype, roof, rows) -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    dev = jax.devices()[0]
+def table(n, dtype, roof, rows, grad: bool) -> str:
+    what = "`jax.grad` of the sum of each op's output (w.r.t. its first array input)" if grad else "each op"
     lines = [
-        f"Batch {n:,} {jnp.dtype(dtype).name} quaternions; {dev.platform.upper()} `{dev.device_kind}`, "
-        f"{os.cpu_count()} cores ({cpu}); jax {jax.__version__}, jaxlie {getattr(jaxlie, '__version__', '?')}, "
-        f"scipy {__import__('scipy').__version__}. Median of repeated jitted runs after compilation.",
+        f"Batch {n:,}, {jnp.dtype(dtype).name}, {what}. Roofline (jitted `a + b` on two `({n}, 4)` arrays): "
+        f"{roof * 1e3:.3f} ms.",
         "",
-        f"Roofline (jitted `a + b` on two `({n}, 4)` arrays): {roof * 1e3:.2f} ms.",
-        "",
-        "| op | jaxquat (ms) | jaxlie (ms) | scipy on JAX (ms) | jaxlie / jaxquat | scipy / jaxquat | jaxquat / roofline |",
-        "|---|---:|---:|---:|---:|---:|---:|",
+        "| op | jaxquat (ms) | " + " | ".join(f"{p} / jaxquat" for p in PEERS) + " | jaxquat / roofline |",
+        "|---|---:|" + "---:|" * (len(PEERS) + 1),
     ]
     for op, tm in rows:
         ours = tm["jaxquat"]
-
-        def ms(x):
-            return "n/a" if x is None else f"{x * 1e3:.2f}"
-
-        def ratio(x):
-            return "n/a" if x is None else f"{x / ours:.1f}x"
-
-        lines.append(
-            f"| {op} | {ms(ours)} | {ms(tm['jaxlie'])} | {ms(tm['scipy'])} | {ratio(tm['jaxlie'])} | "
-            f"{ratio(tm['scipy'])} | {ours / roof:.2f} |"
-        )
+        cells = ["n/a" if tm.get(p) is None else f"{tm[p] / ours:.1f}x" for p in PEERS]
+        lines.append(f"| {op} | {ours * 1e3:.3f} | " + " | ".join(cells) + f" | {ours / roof:.2f} |")
     return "\n".join(lines) + "\n"
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--n", type=int, default=1_000_000)
-    ap.add_argument("--dtype", default="float32", choices=["float32", "float64"])
+    ap.add_argument("--n", type=int, nargs="+", default=[1, 1000, 1_000_000])
+    ap.add_argument("--dtype", nargs="+", default=["float32", "float64"], choices=["float32", "float64"])
     ap.add_argument("--repeats", type=int, default=15)
-    ap.add_argument("--write", help="markdown file to (re)write with the table")
+    ap.add_argument("--no-grad", action="store_true")
+    ap.add_argument("--write", help="markdown file whose 'ops' section to rewrite")
     a = ap.parse_args(argv)
-    if a.dtype == "float64":
-        jax.config.update("jax_enable_x64", True)
-    roof, rows = run(a.n, jnp.dtype(a.dtype), a.repeats)
-    md = table(a.n, a.dtype, roof, rows)
-    print(md)
+    sections = [
+        f"{machine()}; jaxlie {getattr(jaxlie, '__version__', '?')}, scipy {__import__('scipy').__version__}. "
+        "Ratios: peer time / jaxquat time in the same run (above 1x: jaxquat is faster). Median of repeated runs "
+        "after compilation; JAX contenders jitted, the NumPy ones (scipy on NumPy arrays, numpy-quaternion) "
+        "called directly.",
+    ]
+    for dtype in a.dtype:
+        jax.config.update("jax_enable_x64", dtype == "float64")
+        for n in a.n:
+            for grad in ([False] if a.no_grad else [False, True]):
+                reps = a.repeats if n < 1_000_000 else max(3, a.repeats // 3)
+                roof, rows = run(n, jnp.dtype(dtype), reps, grad)
+                md = table(n, dtype, roof, rows, grad)
+                print(md, flush=True)
+                sections.append(md)
     if a.write:
-        header = (
-            "# Benchmarks\n\n"
-            "Written by `make bench` (`python benchmarks/ops.py --write docs/benchmarks.md`). "
-            "Ratios are peer time / jaxquat time measured in the same run; absolute times depend on the machine.\n\n"
-            "## Rotation ops\n\n"
-        )
-        with open(a.write, "w") as f:
-            f.write(header + md)
+        write_section(a.write, "ops", "## Rotation ops\n\n" + "\n".join(sections))
     return 0
 
 

@@ -1,0 +1,48 @@
+"""Shared by the benchmark scripts: timing after compilation, the machine line, and
+rewriting one generated section of docs/benchmarks.md (hand-written text around it stays)."""
+
+from __future__ import annotations
+
+import os
+import pathlib
+import platform
+import statistics
+import time
+
+import jax
+
+
+def median_time(fn, *args, repeats: int) -> float:
+    """Median wall time of ``fn(*args)`` after two untimed calls (compile, warm up)."""
+    jax.block_until_ready(fn(*args))
+    jax.block_until_ready(fn(*args))
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def machine() -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")), cpu)
+    except OSError:
+        pass
+    dev = jax.devices()[0]
+    return f"{dev.platform.upper()} `{dev.device_kind}`, {os.cpu_count()} cores ({cpu}); jax {jax.__version__}"
+
+
+def write_section(path: str, name: str, markdown: str) -> None:
+    """Replace the text between ``<!-- name:begin -->`` and ``<!-- name:end -->`` (appended if absent)."""
+    begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
+    p = pathlib.Path(path)
+    text = p.read_text() if p.exists() else "# Benchmarks\n"
+    block = f"{begin}\n{markdown.rstrip()}\n{end}"
+    if begin in text and end in text:
+        text = text[: text.index(begin)] + block + text[text.index(end) + len(end):]
+    else:
+        text = text.rstrip() + "\n\n" + block + "\n"
+    p.write_text(text)
