@@ -95,12 +95,14 @@ def _residual(q, w, qf, wf):
     return jnp.concatenate([minus(q, qf), w - wf])
 
 
-def _lbfgs(f, x0, iters: int, memory_size: int = 10, linesearch_steps: int = 20):
+def _lbfgs(f, x0, iters: int, memory_size: int = 10, linesearch_steps: int = 20, initial_guess: str = "one"):
     """``iters`` optax L-BFGS steps (zoom line search) on ``f`` from ``x0`` (any pytree) in one
-    ``lax.scan``; returns the final parameters and ``f`` at every iteration. (The examples
-    use it too, through ``examples/_lbfgs.py``.)"""
-    opt = optax.lbfgs(memory_size=memory_size,
-                      linesearch=optax.scale_by_zoom_linesearch(max_linesearch_steps=linesearch_steps))
+    ``lax.scan``; returns the final parameters and ``f`` at every iteration. The defaults are
+    ``optax.lbfgs()``'s (the examples use them, through ``examples/_lbfgs.py``); the
+    time-optimal solver keeps the previous step length as the line search's first guess."""
+    linesearch = optax.scale_by_zoom_linesearch(max_linesearch_steps=linesearch_steps,
+                                                initial_guess_strategy=initial_guess)
+    opt = optax.lbfgs(memory_size=memory_size, linesearch=linesearch)
     value_and_grad = optax.value_and_grad_from_state(f)
 
     def body(carry, _):
@@ -190,7 +192,7 @@ def _solve(x, lam, mu, pr: _Problem, substeps: int, inner: int):
             c = _terminal_residual(z, pr, substeps)
             return _unpack(z, pr)[0] + lam1 @ c + 0.5 * mu1 * c @ c
 
-        x1, _ = _lbfgs(lagrangian, x1, inner, _MEMORY, _LINESEARCH_STEPS)
+        x1, _ = _lbfgs(lagrangian, x1, inner, _MEMORY, _LINESEARCH_STEPS, initial_guess="keep")
         x_pol = _polish(x1, pr, substeps)
         return x1, _terminal_residual(x1, pr, substeps), x_pol, _terminal_residual(x_pol, pr, substeps), \
             _unpack(x_pol, pr)[0]
