@@ -115,19 +115,23 @@ def _lbfgs(f, x0, iters: int, memory_size: int = 10, linesearch_steps: int = 20,
     return x, values
 
 
-def _reference_time(inertia, bound, q0, qf, w0, wf) -> float:
-    """Eigenaxis rest-to-rest bang-bang time ``2 sqrt(theta / a)`` plus ``|wf - w0| / a``, with
-    ``a`` the largest angular acceleration about the eigenaxis that the bounds allow."""
+def _eigenaxis(q0, qf) -> tuple[float, np.ndarray]:
+    """Angle and unit axis of the rotation from ``q0`` to ``qf`` (body frame; x if none)."""
     rotvec = np.asarray(minus(qf, q0))
     theta = float(np.linalg.norm(rotvec))
-    axis = rotvec / theta if theta > 0 else np.array([1.0, 0.0, 0.0])
+    return theta, (rotvec / theta if theta > 0 else np.array([1.0, 0.0, 0.0]))
+
+
+def _reference_time(inertia, bound, theta, axis, w0, wf) -> float:
+    """Eigenaxis rest-to-rest bang-bang time ``2 sqrt(theta / a)`` plus ``|wf - w0| / a``, with
+    ``a`` the largest angular acceleration about the eigenaxis that the bounds allow."""
     need = np.abs(np.asarray(inertia) @ axis)
     accel = float(np.min(np.where(need > 1e-12, np.asarray(bound) / np.maximum(need, 1e-300), np.inf)))
     return 2.0 * math.sqrt(theta / accel) + float(np.linalg.norm(np.asarray(wf) - np.asarray(w0))) / accel
 
 
-def _initial_controls(key, starts, intervals, bound, q0, qf, init):
-    """Parameters ``p`` ``(starts, intervals, 3)`` and ``log T / T_ref`` ``(starts,)``."""
+def _initial_controls(key, starts, intervals, bound, axis, init):
+    """Torque parameters ``p`` ``(starts, intervals, 3)``."""
     keys = jax.random.split(key, 2)
     if init is not None:  # warm start: hold the previous torque on the new grid, small perturbations
         old = np.asarray(init.controls)
@@ -135,15 +139,12 @@ def _initial_controls(key, starts, intervals, bound, q0, qf, init):
         u = np.clip(old[idx] / np.asarray(bound), -0.999, 0.999)
         p = np.arcsin(u)[None] + 0.01 * np.array(jax.random.normal(keys[0], (starts, intervals, 3)))
         p[0] = np.arcsin(u)
-        return p, np.zeros(starts)
-    rotvec = np.asarray(minus(qf, q0))
-    theta = np.linalg.norm(rotvec)
-    axis = rotvec / theta if theta > 0 else np.array([1.0, 0.0, 0.0])
+        return p
     sign = np.where(np.arange(intervals) < intervals / 2, 1.0, -1.0)[:, None]
     eigen = np.arcsin(0.8 * np.clip(sign * axis / np.max(np.abs(axis)), -1, 1))
     p = np.array(jax.random.normal(keys[1], (starts, intervals, 3)))
     p[0] = eigen + 0.3 * p[0]
-    return p, np.zeros(starts)
+    return p
 
 
 class _Problem(NamedTuple):
@@ -258,12 +259,13 @@ def minimum_time_reorientation(
     q0 = q0 / jnp.linalg.norm(q0)
     qf = qf / jnp.linalg.norm(qf)
     inertia, bound, w0, wf = (jnp.asarray(x, dtype) for x in (inertia, bound, w0, wf))
-    t_ref = float(init.time) if init is not None else _reference_time(inertia, bound, q0, qf, w0, wf)
-    p, sigma = _initial_controls(jax.random.PRNGKey(seed), starts, intervals, bound, q0, qf, init)
+    theta, axis = _eigenaxis(q0, qf)
+    t_ref = float(init.time) if init is not None else _reference_time(inertia, bound, theta, axis, w0, wf)
+    p = _initial_controls(jax.random.PRNGKey(seed), starts, intervals, bound, axis, init)
 
     problem = _Problem(inertia, bound, q0, w0, qf, wf, jnp.asarray(t_ref, dtype))
 
-    x = {"sigma": jnp.asarray(sigma, dtype), "p": jnp.asarray(p, dtype)}
+    x = {"sigma": jnp.zeros(starts, dtype), "p": jnp.asarray(p, dtype)}  # every start at T = T_ref
     lam = jnp.zeros((starts, 6), dtype)
     mus = np.full(starts, float(mu))
     prev = np.full(starts, np.inf)
