@@ -19,8 +19,11 @@ both sides of the switch.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jax import Array
+
+from . import _trig
 
 # Switch points (in s = theta**2). For sin(x)/x and cos(x) the first omitted
 # term at s = 0.02 is s**5/11! ~ 8e-17; for atan(x)/x it is s**6/13 ~ 8e-20 at
@@ -32,6 +35,18 @@ _ATAN_SWITCH = 1e-3
 _SINC = (1.0, -1.0 / 6.0, 1.0 / 120.0, -1.0 / 5040.0, 1.0 / 362880.0)
 _COS = (1.0, -1.0 / 2.0, 1.0 / 24.0, -1.0 / 720.0, 1.0 / 40320.0)
 _ATAN = (1.0, -1.0 / 3.0, 1.0 / 5.0, -1.0 / 7.0, 1.0 / 9.0, -1.0 / 11.0)
+
+
+def scalars(*xs: Array) -> tuple[Array, ...]:
+    """Per-element scalars written to memory before they are broadcast into vectors.
+
+    Left to itself XLA fuses a scalar expression (a ``sincos``, an ``atan2``) into
+    every component of the ``(..., 3)`` or ``(..., 4)`` array built from it, so the
+    polynomial is evaluated three or four times per element. An optimisation
+    barrier makes it one pass that stores the scalars and one cheap pass that
+    assembles the vectors.
+    """
+    return jax.lax.optimization_barrier(xs)
 
 
 def _horner(s: Array, coeffs: tuple[float, ...]) -> Array:
@@ -49,12 +64,21 @@ def _series_or_direct(s: Array, coeffs, direct, switch: float) -> Array:
 
 def sinc_of_sq(s: Array) -> Array:
     """``sin(x)/x`` as a function of ``s = x**2`` (smooth at 0)."""
-    return _series_or_direct(s, _SINC, lambda u: jnp.sin(jnp.sqrt(u)) / jnp.sqrt(u), _TRIG_SWITCH)
+    return _series_or_direct(s, _SINC, lambda u: _trig.sin(jnp.sqrt(u)) / jnp.sqrt(u), _TRIG_SWITCH)
+
+
+def sinc_cos_of_sq(s: Array) -> tuple[Array, Array]:
+    """``(sin(x)/x, cos(x))`` as functions of ``s = x**2``, sharing one range reduction."""
+    small = s < _TRIG_SWITCH
+    s_small = jnp.where(small, s, 0.0)
+    x = jnp.sqrt(jnp.where(small, _TRIG_SWITCH, s))
+    sin, cos = _trig.sincos(x)
+    return scalars(jnp.where(small, _horner(s_small, _SINC), sin / x), jnp.where(small, _horner(s_small, _COS), cos))
 
 
 def cos_of_sq(s: Array) -> Array:
     """``cos(x)`` as a function of ``s = x**2`` (smooth at 0)."""
-    return _series_or_direct(s, _COS, lambda u: jnp.cos(jnp.sqrt(u)), _TRIG_SWITCH)
+    return _series_or_direct(s, _COS, lambda u: _trig.cos(jnp.sqrt(u)), _TRIG_SWITCH)
 
 
 def atan2_over_n(nsq: Array, w: Array) -> Array:
@@ -70,7 +94,7 @@ def atan2_over_n(nsq: Array, w: Array) -> Array:
     x2 = jnp.where(small, nsq / (w_safe * w_safe), 0.0)
     taylor = _horner(x2, _ATAN) / w_safe
     n_safe = jnp.sqrt(jnp.where(small | (nsq <= 0), 1.0, nsq))
-    return jnp.where(small, taylor, jnp.arctan2(n_safe, w) / n_safe)
+    return scalars(jnp.where(small, taylor, _trig.atan2(n_safe, w) / n_safe))[0]
 
 
 def dot(a: Array, b: Array) -> Array:
@@ -102,7 +126,7 @@ def safe_norm(x: Array, axis: int = -1) -> Array:
 def safe_atan2(y: Array, x: Array) -> Array:
     """``atan2(y, x)``, returning 0 with zero gradient at ``(0, 0)`` instead of NaN."""
     zero = (x == 0) & (y == 0)
-    return jnp.where(zero, 0.0, jnp.arctan2(y, jnp.where(zero, 1.0, x)))
+    return jnp.where(zero, 0.0, _trig.atan2(y, jnp.where(zero, 1.0, x)))
 
 
 def safe_hypot(x: Array, y: Array) -> Array:
@@ -130,14 +154,14 @@ _JINV = (1 / 12, 1 / 720, 1 / 30240, 1 / 1209600, 2.08767569878681e-08, 5.284190
 
 def one_minus_cos_over_sq(s: Array) -> Array:
     """``(1 - cos x) / x**2`` as a function of ``s = x**2``."""
-    return _series_or_direct(s, _ONE_MINUS_COS, lambda u: (1 - jnp.cos(jnp.sqrt(u))) / u, _JAC_SWITCH)
+    return _series_or_direct(s, _ONE_MINUS_COS, lambda u: (1 - _trig.cos(jnp.sqrt(u))) / u, _JAC_SWITCH)
 
 
 def x_minus_sin_over_cube(s: Array) -> Array:
     """``(x - sin x) / x**3`` as a function of ``s = x**2``."""
     def direct(u):
         x = jnp.sqrt(u)
-        return (x - jnp.sin(x)) / (u * x)
+        return (x - _trig.sin(x)) / (u * x)
 
     return _series_or_direct(s, _X_MINUS_SIN, direct, _JAC_SWITCH)
 
@@ -146,6 +170,6 @@ def jacobian_inverse_coeff(s: Array) -> Array:
     """``1/x**2 - cot(x/2) / (2 x)`` as a function of ``s = x**2`` (finite for 0 <= x < 2 pi)."""
     def direct(u):
         x = jnp.sqrt(u)
-        return 1 / u - jnp.cos(x / 2) / (2 * x * jnp.sin(x / 2))
+        return 1 / u - _trig.cos(x / 2) / (2 * x * _trig.sin(x / 2))
 
     return _series_or_direct(s, _JINV, direct, _JAC_SWITCH)

@@ -14,8 +14,8 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks, _safe
-from .algebra import _canonical_sign, _canonicalize
+from . import _checks, _safe, _trig
+from .algebra import _canonical_sign, _canonicalize, _scalar_vector
 
 __all__ = [
     "to_matrix",
@@ -144,7 +144,7 @@ def _from_matrix_shepperd(m: Array) -> Array:
         for c0, c1, c2, c3 in zip(*_k_columns(diag, off))
     ]
     # Normalise and fix the sign on the components, then stack once: one fused loop.
-    scale = jax.lax.rsqrt(sum(c * c for c in col)) * _canonical_sign(*col)
+    scale = _canonical_sign(*col) / jnp.sqrt(sum(c * c for c in col))  # (lax.rsqrt is a scalar call on CPU)
     return jnp.stack([c * scale for c in col], axis=-1)
 
 
@@ -200,9 +200,9 @@ def to_rotvec(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3"]:
 
 def _from_rotvec(r: Array) -> Array:
     s = 0.25 * _safe.norm_sq(r)  # (phi/2)^2
-    w = _safe.cos_of_sq(s)
-    half_sinc = 0.5 * _safe.sinc_of_sq(s)
-    return jnp.concatenate([w[..., None], half_sinc[..., None] * r], axis=-1)
+    sinc, w = _safe.sinc_cos_of_sq(s)
+    half_sinc = 0.5 * sinc
+    return _scalar_vector(w, half_sinc[..., None] * r)
 
 
 def from_rotvec(r: Float[Array, "*batch 3"]) -> Float[Array, "*batch 4"]:
@@ -228,7 +228,7 @@ def to_axis_angle(q: Float[Array, "*batch 4"]) -> tuple[Float[Array, "*batch 3"]
     w = q[..., 0]
     v = q[..., 1:]
     n = _safe.safe_norm(v)
-    angle = 2.0 * jnp.arctan2(n, w)
+    angle = 2.0 * _trig.atan2(n, w)
     zero = n == 0
     axis = jnp.where(zero[..., None], _safe.const_like([1.0, 0.0, 0.0], v), v / jnp.where(zero, 1.0, n)[..., None])
     return axis, angle
@@ -248,7 +248,8 @@ def from_axis_angle(axis: Float[Array, "*batch 3"], angle: Float[Array, "*batch"
     unit = axis / jnp.sqrt(jnp.where(nsq > 0, nsq, 1.0))[..., None]
     unit = jnp.where(((nsq == 0) & (angle != 0))[..., None], jnp.nan, unit)
     half = 0.5 * angle
-    return jnp.concatenate([jnp.cos(half)[..., None], jnp.sin(half)[..., None] * unit], axis=-1)
+    s, c = _trig.sincos(half)
+    return _scalar_vector(c, s[..., None] * unit)
 
 
 def to_mrp(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3"]:
@@ -273,4 +274,4 @@ def from_mrp(p: Float[Array, "*batch 3"]) -> Float[Array, "*batch 4"]:
     p = _checks.vec3(p, "p")
     psq = _safe.norm_sq(p)
     denom = 1.0 + psq
-    return jnp.concatenate([((1.0 - psq) / denom)[..., None], (2.0 / denom)[..., None] * p], axis=-1)
+    return _scalar_vector((1.0 - psq) / denom, (2.0 / denom)[..., None] * p)

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks
+from . import _checks, _safe
 from .algebra import _multiply
 from .inertia import _solve, _validated
 from .skew import _matvec
@@ -108,7 +108,7 @@ def kinetic_energy(
     frame = _checks.frame(frame)
     q, omega, inertia = _args(q, {"omega": omega}, inertia)
     w = _to_body(q, omega, frame)
-    return 0.5 * jnp.sum(w * _matvec(inertia, w), axis=-1)
+    return 0.5 * _safe.dot(w, _matvec(inertia, w))
 
 
 def angular_acceleration(
@@ -305,4 +305,4 @@ def norm_constraint_multiplier(
     """
     q, qdot, inertia = _args(q, {}, inertia, {"qdot": qdot})
     w = _omega_from_qdot(q, qdot, "body")
-    return jnp.sum(w * _matvec(inertia, w), axis=-1)
+    return _safe.dot(w, _matvec(inertia, w))

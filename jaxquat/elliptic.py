@@ -31,7 +31,7 @@ import jax.numpy as jnp
 from jax import Array, lax
 from jaxtyping import Float
 
-from . import _checks
+from . import _checks, _trig
 
 __all__ = ["ellipj", "ellipk", "elliprf", "elliprj"]
 
@@ -69,8 +69,8 @@ def _amplitude(u: Array, steps: Array, a_last: Array) -> Array:
     """
     def step(phi, abc):
         a, b, c = abc
-        s, co = jnp.sin(phi), jnp.cos(phi)
-        return (phi + jnp.arctan2(c * s, jnp.sqrt((a * co) ** 2 + (b * s) ** 2))) / 2, None
+        s, co = _trig.sincos(phi)
+        return (phi + _trig.atan2(c * s, jnp.sqrt((a * co) ** 2 + (b * s) ** 2))) / 2, None
 
     phi0 = (2.0**_AGM_STEPS) * a_last * u
     abc = tuple(jnp.broadcast_to(x, (_AGM_STEPS,) + phi0.shape) for x in steps)
@@ -80,7 +80,7 @@ def _amplitude(u: Array, steps: Array, a_last: Array) -> Array:
 
 def _sn_cn_dn(phi: Array, m: Array, mc: Array) -> tuple[Array, Array, Array]:
     """``sn, cn, dn`` from the amplitude ``phi = am(u | m)``."""
-    sn, cn = jnp.sin(phi), jnp.cos(phi)
+    sn, cn = _trig.sincos(phi)
     return sn, cn, jnp.sqrt(mc + m * cn * cn)  # dn = sqrt(1 - m sn^2), no cancellation near m = 1
 
 
@@ -217,7 +217,7 @@ def _incomplete(phi: Array, m: Array, mc: Array, n: Array) -> tuple[Array, Array
     m, mc, n = m[None], mc[None], n[None]
     j = jnp.round(phi / jnp.pi)
     r = phi - j * jnp.pi
-    s, c = jnp.sin(r), jnp.cos(r)
+    s, c = _trig.sincos(r)
     s2, c2 = s * s, c * c
     # Rows 0..k-1: the partial integrals at r; last row: the complete ones (sin r = 1,
     # cos r = 0; x = tiny instead of 0 keeps sqrt's forward-mode derivative finite and

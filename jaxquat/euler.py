@@ -18,7 +18,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks, _safe
+from . import _checks, _safe, _trig
 from .algebra import _multiply
 
 __all__ = ["from_euler", "to_euler"]
@@ -26,10 +26,9 @@ __all__ = ["from_euler", "to_euler"]
 _AXIS = {"x": 0, "y": 1, "z": 2}
 
 
-def _elementary(axis: int, angle: Array) -> Array:
-    half = 0.5 * angle
-    c, s = jnp.cos(half), jnp.sin(half)
-    zero = jnp.zeros_like(half)
+def _elementary(axis: int, s: Array, c: Array) -> Array:
+    """``(cos(t/2), sin(t/2) e_axis)`` from ``s = sin(t/2)``, ``c = cos(t/2)``."""
+    zero = jnp.zeros_like(s)
     comps = [zero, zero, zero]
     comps[axis] = s
     return jnp.stack([c, *comps], axis=-1)
@@ -47,7 +46,9 @@ def from_euler(angles: Float[Array, "*batch 3"], seq: str) -> Float[Array, "*bat
     seq = _checks.euler_seq(seq)
     angles = _checks.vec3(angles, "angles")
     axes = [_AXIS[c] for c in seq.lower()]
-    q0, q1, q2 = (_elementary(a, angles[..., i]) for i, a in enumerate(axes))
+    # One sincos over the whole (..., 3) array, stored before the products use it.
+    s, c = _safe.scalars(*_trig.sincos(0.5 * angles))
+    q0, q1, q2 = (_elementary(a, s[..., i], c[..., i]) for i, a in enumerate(axes))
     if seq.islower():
         return _multiply(q2, _multiply(q1, q0))
     return _multiply(q0, _multiply(q1, q2))
@@ -94,7 +95,7 @@ def to_euler(q: Float[Array, "*batch 4"], seq: str) -> Float[Array, "*batch 3"]:
     else:
         a, b, c, d = w - qj, qi + qk, qj + w, qk - qi
 
-    middle = 2.0 * jnp.arctan2(_safe.safe_hypot(c, d), _safe.safe_hypot(a, b))
+    middle = 2.0 * _trig.atan2(_safe.safe_hypot(c, d), _safe.safe_hypot(a, b))
     half_sum = _safe.safe_atan2(b, a)
     half_diff = _safe.safe_atan2(d, c)
 
@@ -114,6 +115,8 @@ def to_euler(q: Float[Array, "*batch 4"], seq: str) -> Float[Array, "*batch 3"]:
         third = jnp.where(regular, half_sum - half_diff, 0.0)
     if not symmetric:
         middle = middle - 0.5 * jnp.pi
+    first, middle, third = _safe.scalars(first, middle, third)
     angles = [first, middle, third]
-    wrap = lambda t: jnp.remainder(t + jnp.pi, 2.0 * jnp.pi) - jnp.pi  # noqa: E731
+    # (t + pi) mod 2 pi - pi, by floor: jnp.remainder is a scalar fmod call on CPU
+    wrap = lambda t: t - (2.0 * jnp.pi) * jnp.floor((t + jnp.pi) / (2.0 * jnp.pi))  # noqa: E731
     return jnp.stack([wrap(angles[0]), angles[1], wrap(angles[2])], axis=-1)

@@ -10,7 +10,7 @@ from jax import Array
 from jaxtyping import Float
 
 from . import _checks, _safe
-from .algebra import _canonicalize, _conjugate, _multiply
+from .algebra import _canonicalize, _conjugate, _multiply, _scalar_vector
 from .conversions import _k_matrix, _top_eigenvector
 
 __all__ = ["angle", "angle_between", "mean", "align_vectors", "random"]
@@ -68,14 +68,14 @@ def _minimal_rotation(a: Array, b: Array) -> Array:
     """Smallest rotation taking the direction of ``b`` onto that of ``a``."""
     na = jnp.sqrt(_safe.norm_sq(a))
     nb = jnp.sqrt(_safe.norm_sq(b))
-    w = na * nb + jnp.sum(a * b, axis=-1)
+    w = na * nb + _safe.dot(a, b)
     v = jnp.cross(b, a)
     # Antiparallel: any axis perpendicular to b, rotation by pi.
     anti = w <= 1e3 * jnp.finfo(a.dtype).eps * na * nb
     pick_x = jnp.abs(b[..., 0]) <= jnp.maximum(jnp.abs(b[..., 1]), jnp.abs(b[..., 2]))
     helper = jnp.where(pick_x[..., None], _safe.const_like([1.0, 0.0, 0.0], b), _safe.const_like([0.0, 1.0, 0.0], b))
     perp = jnp.cross(b, helper)
-    q = jnp.where(anti[..., None], jnp.concatenate([jnp.zeros_like(w)[..., None], perp], -1), jnp.concatenate([w[..., None], v], -1))
+    q = jnp.where(anti[..., None], _scalar_vector(jnp.zeros_like(w), perp), _scalar_vector(w, v))
     return _canonicalize(q / jnp.sqrt(_safe.norm_sq(q))[..., None])
 
 

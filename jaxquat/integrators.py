@@ -58,6 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from . import _safe, _trig
 from .algebra import _multiply
 from .conversions import _from_rotvec
 from .interpolate import _slerp
@@ -133,7 +134,7 @@ def _dexpinv(theta: Array, w: Array, order: int) -> Array:
     cross = jnp.cross(theta, w)
     coef = 1.0 / 12.0
     if order >= 5:
-        coef = coef + jnp.sum(theta * theta, axis=-1, keepdims=True) / 720.0
+        coef = coef + _safe.norm_sq(theta)[..., None] / 720.0
     return w + 0.5 * cross + coef * jnp.cross(theta, cross)
 
 
@@ -230,7 +231,7 @@ def _axis_rotation(q: Array, m: Array, inv_inertia: Array, axis: int, tau) -> tu
     e = jnp.zeros_like(m).at[..., axis].set(phi)
     q = _multiply(q, _from_rotvec(e))
     j, k = (axis + 1) % 3, (axis + 2) % 3
-    c, s = jnp.cos(phi), jnp.sin(phi)
+    s, c = _trig.sincos(phi)
     mj, mk = m[..., j], m[..., k]
     # dm/dt = m x (phi' e_i): the body momentum turns by -phi about axis i.
     m = m.at[..., j].set(c * mj + s * mk).at[..., k].set(-s * mj + c * mk)

@@ -10,7 +10,7 @@ from jax import Array
 from jaxtyping import Float
 
 from . import _checks, _safe
-from .algebra import _conjugate, _multiply
+from .algebra import _conjugate, _multiply, _scalar_vector
 from .conversions import _from_rotvec, _to_rotvec
 
 __all__ = ["slerp", "squad", "squad_control_points", "squad_segment"]
@@ -37,13 +37,14 @@ def slerp(
 
 
 def _slerp(p: Array, q: Array, t: Array) -> Array:
-    q = jnp.where((jnp.sum(p * q, axis=-1) < 0)[..., None], -q, q)
+    q = jnp.where((_safe.dot(p, q) < 0)[..., None], -q, q)
     r = _multiply(_conjugate(p), q)
     w, v = r[..., 0], r[..., 1:]
     nsq = _safe.norm_sq(v)
     scale = t * _safe.atan2_over_n(nsq, w)  # t * (half angle) / |v|
     usq = scale * scale * nsq
-    step = jnp.concatenate([_safe.cos_of_sq(usq)[..., None], (scale * _safe.sinc_of_sq(usq))[..., None] * v], axis=-1)
+    sinc, cos = _safe.sinc_cos_of_sq(usq)
+    step = _scalar_vector(cos, (scale * sinc)[..., None] * v)
     return _multiply(p, step)
 
 

@@ -28,7 +28,7 @@ from jax import Array
 from jaxtyping import Float
 
 from . import _checks, _safe
-from .algebra import _conjugate, _multiply, _rotate
+from .algebra import _conjugate, _multiply, _rotate, _scalar_vector
 from .conversions import _to_matrix
 from .skew import _hat
 
@@ -47,7 +47,7 @@ __all__ = [
 
 def _pure(v: Array) -> Array:
     """The pure quaternion ``(0, v)``."""
-    return jnp.concatenate([jnp.zeros_like(v[..., :1]), v], axis=-1)
+    return _scalar_vector(jnp.zeros_like(v[..., 0]), v)
 
 
 def _vec_rate(q: Array, qdot: Array, frame: str) -> Array:
@@ -71,7 +71,7 @@ def _qddot_from_alpha(q: Array, qdot: Array, alpha: Array, frame: str) -> Array:
     # s = q* qddot (body) or qddot q* (space), solved from the alpha relation;
     # its scalar part q.qddot = -|qdot|^2 keeps d^2|q|^2/dt^2 = 0.
     s_vec = 0.5 * nsq * alpha + 2.0 * _safe.dot(q, qdot)[..., None] * rate / nsq
-    s = jnp.concatenate([-_safe.dot(qdot, qdot)[..., None], s_vec], axis=-1)
+    s = _scalar_vector(-_safe.dot(qdot, qdot), s_vec)
     return (_multiply(q, s) if frame == "body" else _multiply(s, q)) / nsq
 
 

@@ -41,7 +41,7 @@ from jax import Array
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Float
 
-from . import _checks
+from . import _checks, _trig
 from .dynamics import _euler_body
 from .inertia import _validated
 from .integrators import RKMK4, _rkmk_step
@@ -158,7 +158,7 @@ class _Problem(NamedTuple):
 
 
 def _unpack(x, pr: _Problem):
-    return pr.t_ref * jnp.exp(x["sigma"]), pr.bound[None, :] * jnp.sin(x["p"])
+    return pr.t_ref * jnp.exp(x["sigma"]), pr.bound[None, :] * _trig.sin(x["p"])
 
 
 def _terminal_residual(x, pr: _Problem, substeps: int):

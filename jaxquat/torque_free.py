@@ -45,8 +45,8 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks, _safe
-from .algebra import _conjugate, _multiply
+from . import _checks, _safe, _trig
+from .algebra import _conjugate, _multiply, _scalar_vector
 from .conversions import _from_matrix_shepperd, _from_rotvec
 from .elliptic import _agm, _amplitude, _incomplete, _quarter_period, _sn_cn_dn
 from .inertia import _validated
@@ -86,7 +86,7 @@ def _roles(moments: Array, omega: Array):
     lo, mid, hi = order[..., 0], order[..., 1], order[..., 2]
     i_mid = jnp.take_along_axis(moments, mid[..., None], axis=-1)[..., 0]
     # L^2 - 2 E I_mid, written as a sum of terms (no subtraction of large numbers).
-    p_mid = jnp.sum(moments * (moments - i_mid[..., None]) * omega * omega, axis=-1)
+    p_mid = _safe.dot(moments * (moments - i_mid[..., None]), omega * omega)
     around_largest = p_mid > 0
     a = jnp.where(around_largest, hi, lo)
     c = jnp.where(around_largest, lo, hi)
@@ -155,7 +155,7 @@ def _general(q0: Array, w0: Array, moments: Array, t: Array, a: Array, b: Array,
     w_t = (s * abs_wa_t)[..., None] * ea + (-sigma * s * wb_hat_t)[..., None] * eb + wc_t[..., None] * ec
 
     # Precession angle about the angular momentum.
-    ell = jnp.sqrt(jnp.sum((moments * w0) ** 2, axis=-1))
+    ell = jnp.sqrt(_safe.norm_sq(moments * w0))
     nu = ia * dbc / (ic * dab)
     phi0 = _safe.safe_atan2(r_cb * wb_hat, wc)
     (u0,), (pi0,) = _incomplete(phi0[None], m, mc, -nu)
@@ -164,8 +164,8 @@ def _general(q0: Array, w0: Array, moments: Array, t: Array, a: Array, b: Array,
     kb, kc = jnp.sqrt(ib / dab), jnp.sqrt(ic / dac)
 
     def chi(phi):
-        sn, cs = jnp.sin(phi), jnp.cos(phi)
-        return phi + jnp.arctan2((kb - kc) * sn * cs, kc * cs * cs + kb * sn * sn)
+        sn, cs = _trig.sincos(phi)
+        return phi + _trig.atan2((kb - kc) * sn * cs, kc * cs * cs + kb * sn * sn)
 
     psi = (
         ell * t / ia
@@ -176,7 +176,8 @@ def _general(q0: Array, w0: Array, moments: Array, t: Array, a: Array, b: Array,
     p0 = _minimal_rotation(moments * w0 / ell[..., None], e)
     p_t = _minimal_rotation(moments * w_t / ell[..., None], e)
     half = psi / 2
-    r = jnp.concatenate([jnp.cos(half)[..., None], jnp.sin(half)[..., None] * e], axis=-1)
+    s, c = _trig.sincos(half)
+    r = _scalar_vector(c, s[..., None] * e)
     q_t = _multiply(_multiply(_multiply(q0, _conjugate(p0)), r), p_t)
     return q_t, w_t
 
@@ -184,8 +185,8 @@ def _general(q0: Array, w0: Array, moments: Array, t: Array, a: Array, b: Array,
 def _minimal_rotation(n: Array, e: Array) -> Array:
     """The rotation by the smallest angle taking unit ``n`` to unit ``e`` (``n . e > 0`` here)."""
     cross = jnp.cross(n, e)
-    p = jnp.concatenate([(1 + jnp.sum(n * e, axis=-1))[..., None], cross], axis=-1)
-    return p / jnp.linalg.norm(p, axis=-1, keepdims=True)
+    p = _scalar_vector(1 + _safe.dot(n, e), cross)
+    return p / jnp.sqrt(_safe.norm_sq(p))[..., None]
 
 
 def _propagate(q0: Array, omega0: Array, moments: Array, t: Array) -> tuple[Array, Array]:

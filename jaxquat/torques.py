@@ -18,7 +18,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks
+from . import _checks, _trig
 from .algebra import _conjugate, _rotate
 from .skew import _matvec
 
@@ -94,7 +94,8 @@ def circular_orbit_gravity_gradient(inertia: Float[Array, "3 3"], mean_motion: f
 
     def gravity_gradient(t, q, omega, args=None):
         t = jnp.asarray(t, dtype=q.dtype)
-        e_r = jnp.stack([jnp.cos(n * t), jnp.sin(n * t), jnp.zeros_like(t)], axis=-1)
+        s, c = _trig.sincos(n * t)
+        e_r = jnp.stack([c, s, jnp.zeros_like(t)], axis=-1)
         e_r = jnp.broadcast_to(e_r, q.shape[:-1] + (3,))
         return gravity_gradient_torque(q, e_r, inertia, n * n)
 

@@ -1,0 +1,108 @@
+"""The vectorisable sin/cos/atan2 of ``jaxquat._trig`` against libm (numpy, float64).
+
+Every rotation op that takes an angle goes through these, so they are held to a few
+units in the last place on large samples, across the range reduction's quadrants,
+at the signed zeros and axes of atan2, and in their derivatives.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given
+from jax.test_util import check_grads
+
+from helpers import DTYPE, NP_DTYPE, seeds
+from jaxquat import _trig
+
+EPS = float(np.finfo(NP_DTYPE).eps)
+N = 200_000
+_sincos = jax.jit(_trig.sincos)
+_atan2 = jax.jit(_trig.atan2)
+
+
+def _ulps(got, want):
+    """Error in units of eps times max(1, |want|) (absolute near zero, relative elsewhere)."""
+    got = np.asarray(got, np.float64)
+    return np.max(np.abs(got - want) / np.maximum(np.abs(want), 1.0)) / EPS
+
+
+@pytest.mark.parametrize("scale", [1.0, 10.0, 1e3, 1e5])
+def test_sincos_within_two_ulps_of_libm(scale):
+    x = np.random.default_rng(0).uniform(-scale, scale, N).astype(NP_DTYPE)
+    s, c = _sincos(jnp.asarray(x))
+    x64 = x.astype(np.float64)
+    assert _ulps(s, np.sin(x64)) < 2.0
+    assert _ulps(c, np.cos(x64)) < 2.0
+
+
+def test_sincos_small_arguments_are_relatively_exact():
+    # sin x = x to rounding for tiny x, where an absolute bound would be too weak
+    x = np.geomspace(1e-30, 1e-2, 2000).astype(NP_DTYPE)
+    x = np.concatenate([x, -x, [0.0]]).astype(NP_DTYPE)
+    s, c = _sincos(jnp.asarray(x))
+    want = np.sin(x.astype(np.float64))
+    rel = np.abs(np.asarray(s, np.float64) - want) / np.maximum(np.abs(want), 1e-300)
+    assert np.max(rel[x != 0]) < 2 * EPS
+    assert np.asarray(s)[-1] == 0.0 and np.asarray(c)[-1] == 1.0
+
+
+def test_sincos_at_quadrant_boundaries():
+    k = np.arange(-64, 65)
+    x = np.concatenate([k * np.pi / 4, k * np.pi / 2 + 1e-3, k * np.pi / 2 - 1e-3]).astype(NP_DTYPE)
+    s, c = _sincos(jnp.asarray(x))
+    x64 = x.astype(np.float64)
+    assert _ulps(s, np.sin(x64)) < 2.0
+    assert _ulps(c, np.cos(x64)) < 2.0
+
+
+def test_atan2_within_three_ulps_of_libm():
+    rng = np.random.default_rng(1)
+    y = (rng.standard_normal(N) * 10.0 ** rng.uniform(-6, 6, N)).astype(NP_DTYPE)
+    x = (rng.standard_normal(N) * 10.0 ** rng.uniform(-6, 6, N)).astype(NP_DTYPE)
+    got = _atan2(jnp.asarray(y), jnp.asarray(x))
+    want = np.arctan2(y.astype(np.float64), x.astype(np.float64))
+    rel = np.abs(np.asarray(got, np.float64) - want) / np.maximum(np.abs(want), np.finfo(NP_DTYPE).tiny)
+    assert np.max(rel) < 3 * EPS
+
+
+def test_atan2_axes_and_signed_zeros_match_numpy():
+    pz, nz, one = 0.0, -0.0, 1.0
+    y = np.array([pz, nz, pz, nz, one, -one, pz, nz, one, -one, one, -one, np.inf, one], NP_DTYPE)
+    x = np.array([pz, pz, nz, nz, pz, pz, one, one, -one, -one, one, -one, one, np.inf], NP_DTYPE)
+    got = np.asarray(_atan2(jnp.asarray(y), jnp.asarray(x)))
+    want = np.arctan2(y, x)
+    np.testing.assert_allclose(got, want, rtol=3 * EPS, atol=0)
+    np.testing.assert_array_equal(np.signbit(got), np.signbit(want))
+
+
+@given(seed=seeds)
+def test_identities(seed):
+    x = jax.random.uniform(jax.random.PRNGKey(seed), (64,), DTYPE, -20.0, 20.0)
+    s, c = _sincos(x)
+    np.testing.assert_allclose(s * s + c * c, 1.0, atol=4 * EPS)
+    # atan2(sin x, cos x) is x wrapped into (-pi, pi]
+    wrapped = np.remainder(np.asarray(x, np.float64) + np.pi, 2 * np.pi) - np.pi
+    np.testing.assert_allclose(np.asarray(_atan2(s, c), np.float64), wrapped, atol=64 * EPS)
+
+
+def test_gradients():
+    x = jnp.asarray([-7.0, -1.2, 0.0, 0.3, 2.0, 1e4], DTYPE)
+    check_grads(_trig.sincos, (x,), order=2, modes=["fwd", "rev"], eps=1e-3 if DTYPE == jnp.float32 else 1e-5)
+    y = jnp.asarray([0.3, -2.0, 7.0, 0.0, -0.2], DTYPE)  # (off the branch cut at x < 0, y = 0)
+    xx = jnp.asarray([-1.0, 0.5, -3.0, 2.0, -1.0], DTYPE)
+    check_grads(_trig.atan2, (y, xx), order=2, modes=["fwd", "rev"], eps=1e-3 if DTYPE == jnp.float32 else 1e-5)
+    # exact derivative identities, not finite differences
+    np.testing.assert_allclose(jax.vmap(jax.grad(_trig.sin))(x), _trig.cos(x), rtol=0, atol=0)
+    gy, gx = jax.vmap(jax.grad(_trig.atan2, argnums=(0, 1)))(y, xx)
+    np.testing.assert_allclose(gy, xx / (xx * xx + y * y), rtol=4 * EPS)
+    np.testing.assert_allclose(gx, -y / (xx * xx + y * y), rtol=4 * EPS)
+
+
+def test_jit_vmap_and_batch_shapes():
+    x = jnp.linspace(-3, 3, 12, dtype=DTYPE).reshape(3, 4)
+    s, c = jax.vmap(_trig.sincos)(x)
+    np.testing.assert_allclose(s, jnp.sin(x), atol=4 * EPS)
+    np.testing.assert_allclose(c, jnp.cos(x), atol=4 * EPS)
+    assert _atan2(x, x[::-1]).shape == (3, 4)
+    assert _trig.sin(jnp.asarray(0.5, DTYPE)).shape == ()
