@@ -12,12 +12,17 @@ import time
 import jax
 
 
-def median_time(fn, *args, repeats: int) -> float:
-    """Median wall time of ``fn(*args)`` after two untimed calls (compile, warm up)."""
-    jax.block_until_ready(fn(*args))
-    jax.block_until_ready(fn(*args))
+def median_time(fn, *args, repeats: int, warmup: int = 2, max_seconds: float = 3.0) -> float:
+    """Median wall time of ``fn(*args)`` after ``warmup`` untimed calls (compile, warm up).
+
+    Samples stop after ``repeats`` or once ``max_seconds`` have been spent timing (at least
+    one sample): a contender that takes seconds per call (NumPy at 10^6) is timed once or
+    twice rather than holding up the run.
+    """
+    for _ in range(warmup):
+        jax.block_until_ready(fn(*args))
     times = []
-    for _ in range(repeats):
+    while len(times) < repeats and (not times or sum(times) < max_seconds):
         t0 = time.perf_counter()
         jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - t0)

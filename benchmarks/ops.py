@@ -148,6 +148,11 @@ def numpy_contenders():
     }
 
 
+# Which of (p, q, v, m, t) each op reads: with its output, the bytes its roofline moves.
+READS = {"multiply": (0, 1), "rotate": (0, 2), "to_matrix": (0,), "from_matrix": (3,), "slerp": (0, 1, 4),
+         "to_rotvec": (0,), "from_rotvec": (2,), "to_euler (xyz)": (0,), "from_euler (xyz)": (2,),
+         "mean (of the batch)": (0,), "align_vectors (batch of pairs)": (1, 2)}
+
 # Under jax.grad: d sum(op) / d (its first array input); which input each op reads first.
 GRAD_INPUT = {"multiply": 0, "rotate": 0, "to_matrix": 0, "from_matrix": 3, "slerp": 0, "to_rotvec": 0,
               "from_rotvec": 2, "to_euler (xyz)": 0, "from_euler (xyz)": 2, "mean (of the batch)": 0,
@@ -164,8 +169,19 @@ def _grad_of(fn, index):
 PEERS = ("jaxlie", "scipy", "scipy (NumPy)", "numpy-quaternion")
 
 
+_ADD = jax.jit(lambda a, b: a + b)
+
+
+def roofline(nbytes: int, dtype, repeats: int) -> float:
+    """Time of a jitted ``a + b`` over flat arrays whose three buffers hold ``nbytes`` in all."""
+    size = max(1, -(-nbytes // (3 * jnp.dtype(dtype).itemsize)))
+    a = jnp.ones((size,), dtype)
+    return _time(_ADD, a, a + 1, repeats=repeats)
+
+
 def run(n: int, dtype, repeats: int, grad: bool):
-    """Times per op and library (seconds; None where a library lacks the op or fails to trace)."""
+    """Times per op and library (seconds; None where a library lacks the op or fails to trace),
+    and each op's roofline (the same bytes read and written by ``a + b``)."""
     import numpy as np
 
     key = jax.random.PRNGKey(0)
@@ -177,7 +193,6 @@ def run(n: int, dtype, repeats: int, grad: bool):
     m = jax.jit(jq.to_matrix)(p)
     args = (p, q, v, m, t)
     np_args = tuple(np.asarray(x) for x in args)
-    roof = _time(jax.jit(lambda a, b: a + b), p, q, repeats=repeats)
     numpy_side = {} if grad else numpy_contenders()
     rows = []
     for op, libs in contenders().items():
@@ -191,23 +206,26 @@ def run(n: int, dtype, repeats: int, grad: bool):
                 times[lib] = None
         for lib, fn in numpy_side.get(op, {}).items():
             try:
-                times[lib] = None if fn is None else _time(fn, *np_args, repeats=max(3, repeats // 3))
+                times[lib] = None if fn is None else _time(fn, *np_args, repeats=repeats, warmup=0, max_seconds=1.0)
             except (TypeError, ValueError):  # e.g. numpy-quaternion's slerp takes one scalar t only
                 times[lib] = None
-        rows.append((op, times))
-    return roof, rows
+        ours = libs["jaxquat"] if not grad else _grad_of(libs["jaxquat"], GRAD_INPUT[op])
+        out = jax.eval_shape(ours, *args)
+        moved = sum(args[i].nbytes for i in READS[op]) + out.size * out.dtype.itemsize
+        rows.append((op, times, roofline(moved, dtype, repeats)))
+    return rows
 
 
-def table(n, dtype, roof, rows, grad: bool) -> str:
+def table(n, dtype, rows, grad: bool) -> str:
     what = "`jax.grad` of the sum of each op's output (w.r.t. its first array input)" if grad else "each op"
     lines = [
-        f"Batch {n:,}, {jnp.dtype(dtype).name}, {what}. Roofline (jitted `a + b` on two `({n}, 4)` arrays): "
-        f"{roof * 1e3:.3f} ms.",
+        f"Batch {n:,}, {jnp.dtype(dtype).name}, {what}. Roofline: a jitted `a + b` moving the bytes the op "
+        "reads and writes.",
         "",
         "| op | jaxquat (ms) | " + " | ".join(f"{p} / jaxquat" for p in PEERS) + " | jaxquat / roofline |",
         "|---|---:|" + "---:|" * (len(PEERS) + 1),
     ]
-    for op, tm in rows:
+    for op, tm, roof in rows:
         ours = tm["jaxquat"]
         cells = ["n/a" if tm.get(p) is None else f"{tm[p] / ours:.1f}x" for p in PEERS]
         lines.append(f"| {op} | {ours * 1e3:.3f} | " + " | ".join(cells) + f" | {ours / roof:.2f} |")
@@ -233,8 +251,8 @@ def main(argv=None):
         for n in a.n:
             for grad in ([False] if a.no_grad else [False, True]):
                 reps = a.repeats if n < 1_000_000 else max(3, a.repeats // 3)
-                roof, rows = run(n, jnp.dtype(dtype), reps, grad)
-                md = table(n, dtype, roof, rows, grad)
+                rows = run(n, jnp.dtype(dtype), reps, grad)
+                md = table(n, dtype, rows, grad)
                 print(md, flush=True)
                 sections.append(md)
     if a.write:

@@ -85,7 +85,7 @@ def tsit5(q0, w0):
 
 
 def jaxquat_rkmk4(q0, w0):
-    ts = jnp.asarray([0.0, STEPS * DT], q0.dtype)
+    ts = np.asarray([0.0, STEPS * DT], q0.dtype)  # numpy: concrete under jit, so simulate can plan its steps
     return jq.simulate(q0, w0, jnp.diag(jnp.asarray(MOMENTS, q0.dtype)), ts, solver=jq.RKMK4(), dt0=DT,
                        max_steps=STEPS + 4).q[..., -1, :]
 

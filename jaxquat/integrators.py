@@ -119,11 +119,25 @@ class LieEuler(_LieSolver):
         return 1
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        q, w = y0
         h = terms.contr(t0, t1)
-        _, wdot = terms.vf(t0, y0, args)
-        y1 = (_multiply(q, _from_rotvec(h * w)), w + h * wdot)
+        y1 = _lie_euler_step(lambda t, q, w: terms.vf(t, (q, w), args)[1], t0, h, *y0)
         return y1, None, dict(y0=y0, y1=y1), None, _RESULTS.successful
+
+
+def _lie_euler_step(vf, t0, h, q: Array, w: Array):
+    """``(q Exp(h w), w + h vf(t0, q, w))``."""
+    return _unit(_multiply(q, _from_rotvec(h * w))), w + h * vf(t0, q, w)
+
+
+def _unit(q: Array) -> Array:
+    """One Newton step towards ``|q| = 1``: ``q (3 - |q|^2) / 2``.
+
+    A product of unit quaternions is unit only to rounding, and over many steps the
+    rounding errors of ``|q|`` add up (in float32 to ``| |q| - 1 |`` of about 3e-5 after
+    1000 steps). With ``|q|^2 = 1 + e`` the step leaves ``1 + O(e^2)``, so the norm stays
+    at rounding level for good, at the cost of a few multiplies (no square root or division).
+    """
+    return q * (1.5 - 0.5 * _safe.norm_sq(q))[..., None]
 
 
 def _dexpinv(theta: Array, w: Array, order: int) -> Array:
@@ -164,7 +178,7 @@ def _rkmk_step(vf, t0, h, q: Array, w: Array, tableau, order: int):
         return h * jnp.tensordot(jnp.asarray(weights, w.dtype), ks, axes=1)
 
     theta1 = combine(b, k_theta)
-    q1, w1 = _multiply(q, _from_rotvec(theta1)), w + combine(b, k_w)
+    q1, w1 = _unit(_multiply(q, _from_rotvec(theta1))), w + combine(b, k_w)
     if b_emb.size == 0:
         return (q1, w1), None
     theta_err = combine(b - b_emb, k_theta)

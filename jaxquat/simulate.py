@@ -14,7 +14,7 @@ from jax import Array
 from . import _checks
 from .algebra import _conjugate, _multiply
 from .conversions import _to_matrix
-from .integrators import RKMK45, EulerPoinsotSplit, RigidBodySplit, _RKMK
+from .integrators import RKMK45, EulerPoinsotSplit, LieEuler, RigidBodySplit, _lie_euler_step, _RKMK, _rkmk_step
 from .rigid_body import RigidBody
 from .skew import _matvec
 from .torque_free import principal_axes
@@ -24,7 +24,8 @@ __all__ = ["Simulation", "simulate"]
 
 class Simulation(NamedTuple):
     """Result of :func:`simulate`: attitudes ``q`` ``(*batch, len(ts), 4)``, body angular
-    velocities ``omega`` ``(*batch, len(ts), 3)`` and diffrax's ``solution`` (batched)."""
+    velocities ``omega`` ``(*batch, len(ts), 3)`` and diffrax's ``solution`` (batched;
+    ``None`` when the fixed-step scan ran instead of ``diffeqsolve``)."""
 
     q: Array
     omega: Array
@@ -69,13 +70,25 @@ def simulate(
     is diagonalised with :func:`jaxquat.principal_axes` and the results are
     rotated back (its derivative needs distinct principal moments). ``adjoint`` defaults to diffrax's
     ``RecursiveCheckpointAdjoint``; ``progress=True`` shows a tqdm bar.
+
+    Fast path: ``RKMK4`` and ``LieEuler`` with concrete ``ts`` and ``dt0``, no
+    ``adjoint`` or ``progress``, and ``max_steps`` (if given) not exceeded, run as a ``lax.scan`` over the steps
+    instead of through ``diffeqsolve`` (1.5x the throughput at 10^5 bodies, see
+    ``docs/benchmarks.md``). Every interval ``[ts[i], ts[i+1]]`` is split into the same
+    number ``ceil(max_i |ts[i+1] - ts[i]| / |dt0|)`` of equal steps, so no step exceeds
+    ``dt0`` and every saved state is a step end, not an interpolant; each step is
+    rematerialised in the backward pass (``jax.checkpoint``), so reverse mode stores
+    one state per step. ``solution`` is then ``None``.
     """
+    # the values of a concrete ts, taken before any jnp op (under jit those return tracers)
+    ts_host = None if isinstance(ts, jax.core.Tracer) else np.asarray(ts, dtype=np.float64)
     q0 = _checks.quat(q0, "q0")
     omega0 = _checks.vec3(omega0, "omega0")
     inertia = _checks.inertia(inertia)
     ts = _checks.scalar_like(ts, "ts")
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(f"argument 'ts' must be shaped (n,) with n >= 2, got shape {tuple(ts.shape)}")
+    shared_inertia = inertia if inertia.ndim == 2 else None  # one tensor for every body
     q0, omega0, inertia = _checks.broadcast_batch([q0, omega0, inertia], ["q0", "omega0", "inertia"], [1, 1, 2])
     ts = ts.astype(q0.dtype)
     if solver is None:
@@ -88,7 +101,7 @@ def simulate(
     principal = isinstance(solver, RigidBodySplit) and not _is_concrete_diagonal(inertia)
     if max_steps is None:
         # numpy, not jnp: inside jit even a concrete ts would be traced by ts[-1] - ts[0]
-        span = None if isinstance(ts, jax.core.Tracer) else abs(float(np.asarray(ts)[-1] - np.asarray(ts)[0]))
+        span = None if ts_host is None else abs(float(ts_host[-1] - ts_host[0]))
         if exact:
             max_steps = len(ts)
         else:
@@ -99,6 +112,10 @@ def simulate(
         controller = diffrax.ClipStepSizeController(diffrax.PIDController(rtol=rtol, atol=atol), step_ts=ts)
     else:
         controller = diffrax.ConstantStepSize()
+    substeps = None if (adjoint is not None or progress) else _scan_substeps(solver, ts_host, dt0, max_steps)
+    if substeps is not None:
+        inertia = inertia if shared_inertia is None else shared_inertia
+        return _scan_simulate(q0, omega0, inertia, ts, torque, torque_frame, args, solver, substeps)
     adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
     meter = diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter()
 
@@ -145,3 +162,62 @@ def _has_error_estimate(solver) -> bool:
     if isinstance(solver, _RKMK):
         return len(solver.tableau[3]) > 0
     return isinstance(solver, diffrax.AbstractAdaptiveSolver)
+
+
+def _scan_substeps(solver, ts_host, dt0, max_steps) -> int | None:
+    """Steps per interval of ``ts`` (its values ``ts_host``, None if traced) for the scan path,
+    or None where diffrax must run."""
+    fixed = isinstance(solver, LieEuler) or (isinstance(solver, _RKMK) and not _has_error_estimate(solver))
+    if not fixed or dt0 is None or ts_host is None or isinstance(dt0, jax.core.Tracer):
+        return None
+    widest = float(np.max(np.abs(np.diff(ts_host))))
+    substeps = max(1, math.ceil(widest / abs(float(dt0)) * (1 - 1e-12)))
+    return None if max_steps is not None and substeps * (len(ts_host) - 1) > max_steps else substeps
+
+
+def _scan_simulate(q0, omega0, inertia, ts, torque, torque_frame, args, solver, substeps) -> Simulation:
+    """The fixed-step solvers as nested ``lax.scan``s: intervals of ``ts`` outside, equal steps inside."""
+    batch = q0.shape[:-1]
+    flat = [x.reshape((-1,) + x.shape[len(batch):]) for x in (q0, omega0)] if batch else [q0, omega0]
+
+    def one_body(t, q, w, tensor):
+        return RigidBody(tensor, torque, torque_frame).angular_acceleration(t, q, w, args)
+
+    if not batch:
+        def vf(t, q, w):
+            return one_body(t, q, w, inertia)
+    elif inertia.ndim == 2:  # a tensor shared by the batch stays (3, 3), not carried per body
+        def vf(t, q, w):
+            return jax.vmap(one_body, in_axes=(None, 0, 0, None))(t, q, w, inertia)
+    else:
+        tensors = inertia.reshape((-1, 3, 3))
+
+        def vf(t, q, w):
+            return jax.vmap(one_body, in_axes=(None, 0, 0, 0))(t, q, w, tensors)
+
+    if isinstance(solver, LieEuler):
+        def step(t, h, q, w):
+            return _lie_euler_step(vf, t, h, q, w)
+    else:
+        def step(t, h, q, w):
+            return _rkmk_step(vf, t, h, q, w, solver.tableau, solver.order(None))[0]
+
+    @jax.checkpoint
+    def one_step(y, k, t0, h):
+        q, w = step(t0 + k * h, h, *y)
+        return q, w
+
+    def interval(y, t_pair):
+        t0, t1 = t_pair
+        h = (t1 - t0) / substeps
+        y, _ = jax.lax.scan(lambda y, k: (one_step(y, k, t0, h), None), y, jnp.arange(substeps, dtype=ts.dtype))
+        return y, y
+
+    _, (qs, ws) = jax.lax.scan(interval, (flat[0], flat[1]), (ts[:-1], ts[1:]))
+    qs = jnp.concatenate([flat[0][None], qs])
+    ws = jnp.concatenate([flat[1][None], ws])
+    if not batch:
+        return Simulation(qs, ws, None)
+    n = len(ts)
+    qs, ws = jnp.swapaxes(qs, 0, 1), jnp.swapaxes(ws, 0, 1)
+    return Simulation(qs.reshape(batch + (n, 4)), ws.reshape(batch + (n, 3)), None)
