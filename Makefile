@@ -16,8 +16,10 @@ $(STAMP): $(PY) pyproject.toml
 	touch $(STAMP)
 
 # The peers the benchmarks compare against (MuJoCo MJX among them): only `make bench` needs them.
+# brax without its dependencies (flax, orbax, ...): the benchmark loads only its jax-only math.py.
 $(BENCH_STAMP): $(STAMP)
 	$(PY) -m pip install --quiet -e ".[test,bench]"
+	$(PY) -m pip install --quiet --no-deps "brax==0.14.2"
 	touch $(BENCH_STAMP)
 
 demo: $(STAMP)

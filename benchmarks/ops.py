@@ -36,8 +36,33 @@ def _wxyz(q):
     return jnp.concatenate([q[..., 3:], q[..., :3]], axis=-1)
 
 
+def brax_math():
+    """brax's ``math`` module, loaded from its file (``import brax`` needs flax and more; its
+    ``math`` needs only jax), or None when brax is not installed (``make bench`` installs it)."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("brax")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    path = os.path.join(list(spec.submodule_search_locations)[0], "math.py")
+    module_spec = importlib.util.spec_from_file_location("brax_math", path)
+    module = importlib.util.module_from_spec(module_spec)
+    module_spec.loader.exec_module(module)
+    return module
+
+
 def contenders():
-    """op -> {library: function of (p, q, v, m, t)} (each picks the inputs it needs)."""
+    """op -> {library: function of (p, q, v, m, t)} (each picks the inputs it needs).
+
+    brax's functions take one quaternion each; they run under ``jax.vmap``, as brax
+    users batch them. brax has no from_matrix, slerp, to_rotvec or mean; its Euler
+    functions know one sequence, intrinsic x-y'-z'' (``"XYZ"``), in degrees one way.
+    """
+    bm = brax_math()
+    vm = jax.vmap
+
+    def brax(fn):
+        return None if bm is None else fn
 
     def sp(q):
         return Rotation.from_quat(_xyzw(q))
@@ -50,16 +75,19 @@ def contenders():
             "jaxquat": lambda p, q, v, m, t: jq.multiply(p, q),
             "jaxlie": lambda p, q, v, m, t: (lie(p) @ lie(q)).wxyz,
             "scipy": lambda p, q, v, m, t: _wxyz((sp(p) * sp(q)).as_quat()),
+            "brax": brax(lambda p, q, v, m, t: vm(bm.quat_mul)(p, q)),
         },
         "rotate": {
             "jaxquat": lambda p, q, v, m, t: jq.rotate(p, v),
             "jaxlie": lambda p, q, v, m, t: lie(p) @ v,
             "scipy": lambda p, q, v, m, t: sp(p).apply(v),
+            "brax": brax(lambda p, q, v, m, t: vm(bm.rotate)(v, p)),
         },
         "to_matrix": {
             "jaxquat": lambda p, q, v, m, t: jq.to_matrix(p),
             "jaxlie": lambda p, q, v, m, t: lie(p).as_matrix(),
             "scipy": lambda p, q, v, m, t: sp(p).as_matrix(),
+            "brax": brax(lambda p, q, v, m, t: vm(bm.quat_to_3x3)(p)),
         },
         "from_matrix": {
             "jaxquat": lambda p, q, v, m, t: jq.from_matrix(m),
@@ -85,16 +113,21 @@ def contenders():
             "jaxquat": lambda p, q, v, m, t: jq.from_rotvec(v),
             "jaxlie": lambda p, q, v, m, t: jaxlie.SO3.exp(v).wxyz,
             "scipy": lambda p, q, v, m, t: _wxyz(Rotation.from_rotvec(v).as_quat()),
+            # brax spells it as axis and angle
+            "brax": brax(lambda p, q, v, m, t: vm(bm.quat_rot_axis)(
+                v / jnp.linalg.norm(v, axis=-1, keepdims=True), jnp.linalg.norm(v, axis=-1))),
         },
         "to_euler (xyz)": {
             "jaxquat": lambda p, q, v, m, t: jq.to_euler(p, "xyz"),
             "jaxlie": None,  # jaxlie has only roll/pitch/yaw (as_rpy_radians); not the same quantity set
             "scipy": lambda p, q, v, m, t: sp(p).as_euler("xyz"),
+            "brax": brax(lambda p, q, v, m, t: vm(bm.quat_to_euler)(p)),  # its one sequence, "XYZ"
         },
         "from_euler (xyz)": {
             "jaxquat": lambda p, q, v, m, t: jq.from_euler(v, "xyz"),
             "jaxlie": None,
             "scipy": lambda p, q, v, m, t: _wxyz(Rotation.from_euler("xyz", v).as_quat()),
+            "brax": brax(lambda p, q, v, m, t: vm(bm.euler_to_quat)(v * (180 / jnp.pi))),  # "XYZ", degrees
         },
         "mean (of the batch)": {
             "jaxquat": lambda p, q, v, m, t: jq.mean(p),
@@ -105,6 +138,9 @@ def contenders():
             "jaxquat": lambda p, q, v, m, t: jq.align_vectors(v, jq.rotate(q, v)),
             "jaxlie": None,
             "scipy": lambda p, q, v, m, t: _wxyz(Rotation.align_vectors(sp(q).apply(v), v)[0].as_quat()),
+            # brax's from_to takes unit vectors
+            "brax": brax(lambda p, q, v, m, t: vm(bm.from_to)(*(
+                x / jnp.linalg.norm(x, axis=-1, keepdims=True) for x in (v, jq.rotate(q, v))))),
         },
     }
 
@@ -166,7 +202,7 @@ def _grad_of(fn, index):
     return jax.grad(total, argnums=index)
 
 
-PEERS = ("jaxlie", "scipy", "scipy (NumPy)", "numpy-quaternion")
+PEERS = ("jaxlie", "scipy", "brax", "scipy (NumPy)", "numpy-quaternion")
 
 
 _ADD = jax.jit(lambda a, b: a + b)
@@ -201,7 +237,7 @@ def run(n: int, dtype, repeats: int, grad: bool):
             if grad and fn is not None:
                 fn = _grad_of(fn, GRAD_INPUT[op])
             try:
-                times[lib] = None if fn is None else _time(jax.jit(fn), *args, repeats=repeats)
+                times[lib] = None if fn is None else _time(jax.jit(fn), *args, repeats=repeats, warmup=1)
             except Exception:  # e.g. scipy's array-API path under jax.grad
                 times[lib] = None
         for lib, fn in numpy_side.get(op, {}).items():
@@ -232,16 +268,26 @@ def table(n, dtype, rows, grad: bool) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _version(dist: str) -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version(dist)
+    except PackageNotFoundError:
+        return "not installed"
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--n", type=int, nargs="+", default=[1, 1000, 1_000_000])
     ap.add_argument("--dtype", nargs="+", default=["float32", "float64"], choices=["float32", "float64"])
-    ap.add_argument("--repeats", type=int, default=15)
+    ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--no-grad", action="store_true")
     ap.add_argument("--write", help="markdown file whose 'ops' section to rewrite")
     a = ap.parse_args(argv)
     sections = [
-        f"{machine()}; jaxlie {getattr(jaxlie, '__version__', '?')}, scipy {__import__('scipy').__version__}. "
+        f"{machine()}; jaxlie {_version('jaxlie')}, scipy {_version('scipy')}, brax {_version('brax')} (math.py), "
+        f"numpy-quaternion {_version('numpy-quaternion')}. "
         "Ratios: peer time / jaxquat time in the same run (above 1x: jaxquat is faster). Median of repeated runs "
         "after compilation; JAX contenders jitted, the NumPy ones (scipy on NumPy arrays, numpy-quaternion) "
         "called directly.",

@@ -15,7 +15,7 @@ from jax import Array
 from jaxtyping import Float
 
 from . import _checks, _safe, _trig
-from .algebra import _canonical_sign, _canonicalize, _scalar_vector
+from .algebra import _canonical_sign, _canonicalize, _scalar_vector, _scaled
 
 __all__ = [
     "to_matrix",
@@ -181,7 +181,7 @@ def _to_rotvec(q: Array) -> Array:
     q = _canonicalize(q)
     w = q[..., 0]
     v = q[..., 1:]
-    return (2.0 * _safe.atan2_over_n(_safe.norm_sq(v), w))[..., None] * v
+    return _scaled(2.0 * _safe.atan2_over_n(_safe.norm_sq(v), w), v)
 
 
 def to_rotvec(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3"]:
@@ -202,7 +202,7 @@ def _from_rotvec(r: Array) -> Array:
     s = 0.25 * _safe.norm_sq(r)  # (phi/2)^2
     sinc, w = _safe.sinc_cos_of_sq(s)
     half_sinc = 0.5 * sinc
-    return _scalar_vector(w, half_sinc[..., None] * r)
+    return _scalar_vector(w, r, half_sinc)
 
 
 def from_rotvec(r: Float[Array, "*batch 3"]) -> Float[Array, "*batch 4"]:
@@ -249,7 +249,7 @@ def from_axis_angle(axis: Float[Array, "*batch 3"], angle: Float[Array, "*batch"
     unit = jnp.where(((nsq == 0) & (angle != 0))[..., None], jnp.nan, unit)
     half = 0.5 * angle
     s, c = _trig.sincos(half)
-    return _scalar_vector(c, s[..., None] * unit)
+    return _scalar_vector(c, unit, s)
 
 
 def to_mrp(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3"]:
@@ -274,4 +274,4 @@ def from_mrp(p: Float[Array, "*batch 3"]) -> Float[Array, "*batch 4"]:
     p = _checks.vec3(p, "p")
     psq = _safe.norm_sq(p)
     denom = 1.0 + psq
-    return _scalar_vector((1.0 - psq) / denom, (2.0 / denom)[..., None] * p)
+    return _scalar_vector((1.0 - psq) / denom, p, 2.0 / denom)

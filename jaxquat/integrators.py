@@ -2,7 +2,10 @@
 
 All of them advance ``y = (q, w_b)`` (the state of :class:`jaxquat.RigidBody`)
 and update the attitude by the exponential map, ``q <- q Exp(theta)``, never by
-``q + dq``: ``|q|`` stays 1 to rounding with no renormalisation. They plug into
+``q + dq``: ``|q|`` stays 1 to rounding. The rounding still walks: the RKMK
+solvers and ``LieEuler`` therefore end each step with one Newton step towards
+``|q| = 1`` (``q (3 - |q|^2) / 2``, a few multiplies), which holds float32 runs at
+``| |q| - 1 |`` about 1e-7 after 1000 steps instead of 3e-5. They plug into
 ``diffrax.diffeqsolve`` with its step-size controllers, ``SaveAt``, events and
 adjoints. Dense output interpolates the attitude by slerp (unit norm) and the
 angular velocity linearly.

@@ -44,7 +44,7 @@ def _slerp(p: Array, q: Array, t: Array) -> Array:
     scale = t * _safe.atan2_over_n(nsq, w)  # t * (half angle) / |v|
     usq = scale * scale * nsq
     sinc, cos = _safe.sinc_cos_of_sq(usq)
-    step = _scalar_vector(cos, (scale * sinc)[..., None] * v)
+    step = _scalar_vector(cos, v, scale * sinc)
     return _multiply(p, step)
 
 

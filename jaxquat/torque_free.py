@@ -176,8 +176,8 @@ def _general(q0: Array, w0: Array, moments: Array, t: Array, a: Array, b: Array,
     p0 = _minimal_rotation(moments * w0 / ell[..., None], e)
     p_t = _minimal_rotation(moments * w_t / ell[..., None], e)
     half = psi / 2
-    s, c = _trig.sincos(half)
-    r = _scalar_vector(c, s[..., None] * e)
+    sin_half, cos_half = _trig.sincos(half)
+    r = _scalar_vector(cos_half, e, sin_half)
     q_t = _multiply(_multiply(_multiply(q0, _conjugate(p0)), r), p_t)
     return q_t, w_t
 

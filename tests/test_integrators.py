@@ -64,7 +64,7 @@ def test_asymmetric_top_against_dop853_and_invariants():
         err = np.asarray(jq.angle_between(sim.q, jnp.asarray(q_ref)))
         assert err.max() < bound, (name, err.max())
         inv = jq.invariants(sim.q, sim.omega, jnp.diag(jnp.asarray(I_DIAG)))
-        assert float(jnp.abs(inv["norm_error"]).max()) < 1e-13, (name, "norm")  # no renormalisation anywhere
+        assert float(jnp.abs(inv["norm_error"]).max()) < 1e-13, (name, "norm")  # splittings: no renormalisation
         if name.startswith("RigidBodySplit"):
             h = np.asarray(inv["momentum_space"])
             drift = np.abs(h - h[0]).max() / np.linalg.norm(h[0])
