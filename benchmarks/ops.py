@@ -45,6 +45,8 @@ def brax_math():
     if spec is None or not spec.submodule_search_locations:
         return None
     path = os.path.join(list(spec.submodule_search_locations)[0], "math.py")
+    if not os.path.exists(path):
+        return None
     module_spec = importlib.util.spec_from_file_location("brax_math", path)
     module = importlib.util.module_from_spec(module_spec)
     module_spec.loader.exec_module(module)
