@@ -9,7 +9,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks, _safe
+from . import _checks, _safe, _trig
 from .algebra import _canonicalize, _conjugate, _multiply, _scalar_vector
 from .conversions import _k_matrix, _top_eigenvector
 
@@ -18,7 +18,7 @@ __all__ = ["angle", "angle_between", "mean", "align_vectors", "random"]
 
 def _angle(q: Array) -> Array:
     w = q[..., 0]
-    return 2.0 * jnp.arctan2(_safe.safe_norm(q[..., 1:]), _safe.safe_sqrt(w * w))
+    return 2.0 * _trig.atan2(_safe.safe_norm(q[..., 1:]), _safe.safe_sqrt(w * w))
 
 
 def angle(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch"]:

@@ -166,3 +166,15 @@ def dop853_reference(q0, w0, moments, ts):
     end = ts[np.argmax(np.abs(ts))]
     sol = solve_ivp(rhs, (0.0, end), y0, method="DOP853", rtol=1e-13, atol=1e-13, t_eval=ts)
     return sol.y[:4].T, sol.y[4:].T
+
+
+def run_example(*args: str) -> str:
+    """Run ``python *args`` from the repository root (examples set float64 themselves); its stdout."""
+    import pathlib
+    import subprocess
+    import sys
+
+    root = pathlib.Path(__file__).parent.parent
+    out = subprocess.run([sys.executable, *args], capture_output=True, text=True, cwd=root, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return out.stdout
