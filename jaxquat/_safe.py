@@ -62,11 +62,6 @@ def _series_or_direct(s: Array, coeffs, direct, switch: float) -> Array:
     return jnp.where(small, taylor, direct(jnp.where(small, switch, s)))
 
 
-def sinc_of_sq(s: Array) -> Array:
-    """``sin(x)/x`` as a function of ``s = x**2`` (smooth at 0)."""
-    return _series_or_direct(s, _SINC, lambda u: _trig.sin(jnp.sqrt(u)) / jnp.sqrt(u), _TRIG_SWITCH)
-
-
 def sinc_cos_of_sq(s: Array) -> tuple[Array, Array]:
     """``(sin(x)/x, cos(x))`` as functions of ``s = x**2``, sharing one range reduction."""
     small = s < _TRIG_SWITCH
@@ -74,11 +69,6 @@ def sinc_cos_of_sq(s: Array) -> tuple[Array, Array]:
     x = jnp.sqrt(jnp.where(small, _TRIG_SWITCH, s))
     sin, cos = _trig.sincos(x)
     return scalars(jnp.where(small, _horner(s_small, _SINC), sin / x), jnp.where(small, _horner(s_small, _COS), cos))
-
-
-def cos_of_sq(s: Array) -> Array:
-    """``cos(x)`` as a function of ``s = x**2`` (smooth at 0)."""
-    return _series_or_direct(s, _COS, lambda u: _trig.cos(jnp.sqrt(u)), _TRIG_SWITCH)
 
 
 def atan2_over_n(nsq: Array, w: Array) -> Array:
