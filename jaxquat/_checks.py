@@ -10,24 +10,26 @@ from __future__ import annotations
 
 from typing import Any
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 
 def as_float_array(x: Any, name: str) -> Array:
     """Convert ``x`` to a JAX array and require a floating dtype.
 
-    Python floats and lists are accepted and become JAX's default float dtype.
-    Integer, boolean and complex arrays raise ``TypeError``: silently promoting
-    integer quaternions hides bugs (and the gradients are meaningless).
+    Python floats and lists of real numbers are accepted and become JAX's default float
+    dtype. Integer, boolean and complex arrays, and lists of booleans or complex numbers,
+    raise ``TypeError``: silently promoting integer quaternions hides bugs (and the
+    gradients are meaningless), and a complex value would lose its imaginary part.
     """
     if isinstance(x, (float, int)) and not isinstance(x, bool):
         return jnp.asarray(float(x))
     if isinstance(x, (list, tuple)):
         x = jnp.asarray(x)
-        if not jnp.issubdtype(x.dtype, jnp.floating):
+        if jnp.issubdtype(x.dtype, jnp.integer):  # integer literals in a list, e.g. [1, 0, 0, 0]
             x = x.astype(jnp.asarray(0.0).dtype)
-        return x
     arr = jnp.asarray(x)
     if not jnp.issubdtype(arr.dtype, jnp.floating):
         raise TypeError(
@@ -76,6 +78,33 @@ def per_item(x: Any, name: str, items: Array, items_name: str) -> Array:
             f"'{items_name}' {tuple(items.shape)}), got shape {tuple(x.shape)}"
         )
     return x
+
+
+def concrete(x: Any) -> np.ndarray | None:
+    """The values of ``x`` when they are known at trace time (an eager call), else ``None``."""
+    if isinstance(x, jax.core.Tracer):
+        return None
+    return np.asarray(x)
+
+
+def nonempty(x: Array, name: str, axis: int, what: str) -> Array:
+    """Require a non-empty set along ``axis`` (a shape check, so at trace time)."""
+    if x.shape[axis] == 0:
+        raise ValueError(f"argument '{name}' must hold at least one {what}, got shape {tuple(x.shape)}")
+    return x
+
+
+def weights(w: Array, name: str = "weights") -> Array:
+    """Per-item weights: where their values are known (an eager call), every weight must be
+    finite and non-negative with a positive sum per set. Traced weights are checked by the
+    caller, which returns NaN for a set whose weights are invalid."""
+    values = concrete(w)
+    if values is not None:
+        if not np.all(np.isfinite(values)) or np.any(values < 0):
+            raise ValueError(f"argument '{name}' must be finite and non-negative, got {values}")
+        if np.any(values.sum(axis=-1) <= 0):
+            raise ValueError(f"argument '{name}' must have a positive sum in every set, got {values}")
+    return w
 
 
 def broadcast_batch(arrays: list[Array], names: list[str], core_ndims: list[int]) -> list[Array]:

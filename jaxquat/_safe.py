@@ -103,9 +103,12 @@ def norm_sq(x: Array, axis: int = -1) -> Array:
 
 
 def safe_sqrt(s: Array) -> Array:
-    """``sqrt(s)`` whose derivative at ``s = 0`` is 0 (a subgradient of ``|v|``) instead of inf."""
-    pos = s > 0
-    return jnp.where(pos, jnp.sqrt(jnp.where(pos, s, 1.0)), 0.0)
+    """``sqrt(s)`` whose derivative at ``s = 0`` is 0 (a subgradient of ``|v|``) instead of inf.
+
+    Only an exact zero is special-cased: a NaN ``s`` gives NaN (a NaN input must never
+    come out as a plausible 0)."""
+    zero = s == 0
+    return jnp.where(zero, 0.0, jnp.sqrt(jnp.where(zero, 1.0, s)))
 
 
 def safe_norm(x: Array, axis: int = -1) -> Array:

@@ -238,18 +238,18 @@ def from_axis_angle(axis: Float[Array, "*batch 3"], angle: Float[Array, "*batch"
     """Unit quaternion ``(cos(phi/2), sin(phi/2) u)`` of a rotation by ``phi`` about ``u``, [T] eq. (31).
 
     The axis is normalised here (so any non-zero axis is accepted); a zero axis
-    gives the identity when ``phi = 0`` and NaN otherwise. ``axis`` and
-    ``angle`` broadcast over their batch axes.
+    gives the identity when ``phi = 0`` and a quaternion of four NaNs otherwise (there
+    is no rotation to return; under ``jit`` as well, so the rest of a batch is kept).
+    ``axis`` and ``angle`` broadcast over their batch axes.
     """
     axis = _checks.vec3(axis, "axis")
     angle = _checks.scalar_like(angle, "angle")
     axis, angle = _checks.broadcast_batch([axis, angle], ["axis", "angle"], [1, 0])
     nsq = _safe.norm_sq(axis)
     unit = axis / jnp.sqrt(jnp.where(nsq > 0, nsq, 1.0))[..., None]
-    unit = jnp.where(((nsq == 0) & (angle != 0))[..., None], jnp.nan, unit)
     half = 0.5 * angle
     s, c = _trig.sincos(half)
-    return _scalar_vector(c, unit, s)
+    return jnp.where(((nsq == 0) & (angle != 0))[..., None], jnp.nan, _scalar_vector(c, unit, s))
 
 
 def to_mrp(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3"]:

@@ -113,18 +113,20 @@ def ellipj(u: Float[Array, "*batch"], m: Float[Array, "*batch"]) -> tuple[Array,
     Euler-Poinsot motion: Landau and Lifshitz, Mechanics, section 37.
     """
     u, m = _broadcast((u, m), ("u", "m"))
-    return _jacobi(u, m, 1 - m)
+    out = _jacobi(u, m, 1 - m)
+    return tuple(jnp.where(m > 1, jnp.nan, x) for x in out)  # as scipy: NaN outside m <= 1
 
 
 def ellipk(m: Float[Array, "*batch"]) -> Array:
     """Complete elliptic integral of the first kind ``K(m) = int_0^(pi/2) dt / sqrt(1 - m sin^2 t)``.
 
-    Computed as ``pi / (2 AGM(1, sqrt(1 - m)))``; ``0 <= m < 1`` (``K(1) = inf``:
-    here it is finite but huge, about ``ln(4 / sqrt(tiny))``). Same convention as
+    Computed as ``pi / (2 AGM(1, sqrt(1 - m)))`` for ``m < 1`` (negative ``m`` included);
+    ``K(1) = inf``: here it is finite but huge, about ``ln(4 / sqrt(tiny))``. ``m > 1``
+    (where ``K`` is complex) and ``m = inf`` give NaN, as scipy does. Same convention as
     :func:`scipy.special.ellipk`.
     """
     m = _checks.as_float_array(m, "m")
-    return _quarter_period(m, 1 - m)
+    return jnp.where(m > 1, jnp.nan, _quarter_period(m, 1 - m))
 
 
 def _duplicate(x: Array, y: Array, z: Array) -> tuple[Array, Array, Array, Array]:

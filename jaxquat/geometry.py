@@ -49,19 +49,35 @@ def mean(q: Float[Array, "*batch n 4"], weights: Float[Array, "*batch n"] | None
     (a 4x4 ``eigh``), which minimises ``sum_i w_i |R(q) - R(q_i)|_F^2``. Reduces
     the second-to-last axis (``n`` rotations); leading axes are batch axes.
     Invariant to the sign of each ``q_i``; returns the canonical sign
-    (``w >= 0``). Weights must be non-negative (not checked under ``jit``);
-    default all ones. Gradients exist where the top eigenvalue is simple.
+    (``w >= 0``). Default weights all ones. Gradients exist where the top
+    eigenvalue is simple.
+
+    Bad input: an empty set (``n = 0``) raises ``ValueError`` at trace time.
+    Weights must be finite and non-negative with a positive sum: checked with a
+    ``ValueError`` when their values are known (an eager call); under ``jit`` a
+    set with a negative or non-finite weight, or all weights zero, gives NaN.
     """
     q = _checks.quat(q)
     if q.ndim < 2:
         raise ValueError(f"argument 'q' must be shaped (..., n, 4) with n rotations to average, got shape {tuple(q.shape)}")
+    _checks.nonempty(q, "q", -2, "rotation to average (n >= 1 in (..., n, 4))")
     if weights is None:
-        m = jnp.einsum("...ni,...nj->...ij", q, q)
-    else:
-        weights = _checks.per_item(weights, "weights", q, "q")
-        q, weights = _checks.broadcast_batch([q, weights], ["q", "weights"], [2, 1])
-        m = jnp.einsum("...n,...ni,...nj->...ij", weights, q, q)
-    return _top_eigenvector(m)
+        return _top_eigenvector(jnp.einsum("...ni,...nj->...ij", q, q))
+    weights = _checks.weights(_checks.per_item(weights, "weights", q, "q"))
+    q, weights = _checks.broadcast_batch([q, weights], ["q", "weights"], [2, 1])
+    m = jnp.einsum("...n,...ni,...nj->...ij", weights, q, q)
+    return _nan_where(~_valid_weights(weights), _top_eigenvector(m))
+
+
+def _valid_weights(weights: Array) -> Array:
+    """Per set: every weight finite and non-negative, and their sum positive."""
+    ok = jnp.all(jnp.isfinite(weights) & (weights >= 0), axis=-1)
+    return ok & (jnp.sum(weights, axis=-1) > 0)
+
+
+def _nan_where(bad: Array, q: Array) -> Array:
+    """NaN in every component of the elements where ``bad`` (the others untouched)."""
+    return jnp.where(bad[..., None], jnp.nan, q)
 
 
 def _minimal_rotation(a: Array, b: Array) -> Array:
@@ -96,6 +112,11 @@ def align_vectors(
     about an axis perpendicular to ``b`` when they are antiparallel). With
     ``n >= 2`` vectors all parallel the answer is likewise not unique and the
     gradient does not exist.
+
+    Bad input: no vectors (``n = 0``) raises ``ValueError`` at trace time; weights
+    are checked as in :func:`mean`. A problem with no information (a zero vector
+    when ``n == 1``; every weighted product ``a_i b_i^T`` zero, e.g. all vectors
+    zero) gives NaN for that element, under ``jit`` or not.
     """
     a = _checks.vec3(a, "a")
     b = _checks.vec3(b, "b")
@@ -103,16 +124,20 @@ def align_vectors(
         raise ValueError(
             f"arguments 'a' and 'b' must be shaped (..., n, 3) with the same n, got {tuple(a.shape)} and {tuple(b.shape)}"
         )
+    _checks.nonempty(a, "a", -2, "vector pair (n >= 1 in (..., n, 3))")
     if weights is None:
         a, b = _checks.broadcast_batch([a, b], ["a", "b"], [2, 2])
         weights = jnp.ones(a.shape[:-1], a.dtype)
+        bad = jnp.zeros(a.shape[:-2], bool)
     else:
-        weights = _checks.per_item(weights, "weights", a, "a")
+        weights = _checks.weights(_checks.per_item(weights, "weights", a, "a"))
         a, b, weights = _checks.broadcast_batch([a, b, weights], ["a", "b", "weights"], [2, 2, 1])
+        bad = ~_valid_weights(weights)
     if a.shape[-2] == 1:
-        return _minimal_rotation(a[..., 0, :], b[..., 0, :])
+        degenerate = (_safe.norm_sq(a[..., 0, :]) == 0) | (_safe.norm_sq(b[..., 0, :]) == 0)
+        return _nan_where(bad | degenerate, _minimal_rotation(a[..., 0, :], b[..., 0, :]))
     bmat = jnp.einsum("...n,...ni,...nj->...ij", weights, a, b)
-    return _top_eigenvector(_k_matrix(bmat))
+    return _nan_where(bad | jnp.all(bmat == 0, axis=(-2, -1)), _top_eigenvector(_k_matrix(bmat)))
 
 
 def random(key: Array, shape: tuple[int, ...] | int = (), dtype: Any = None) -> Float[Array, "*shape 4"]:

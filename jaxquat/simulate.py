@@ -6,6 +6,7 @@ import math
 from typing import Any, Callable, NamedTuple
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -91,6 +92,7 @@ def simulate(
     shared_inertia = inertia if inertia.ndim == 2 else None  # one tensor for every body
     q0, omega0, inertia = _checks.broadcast_batch([q0, omega0, inertia], ["q0", "omega0", "inertia"], [1, 1, 2])
     ts = ts.astype(q0.dtype)
+    ts = _check_times(ts, ts_host, dt0, solver)
     if solver is None:
         solver = EulerPoinsotSplit() if torque is None else RKMK45()
     adaptive = _has_error_estimate(solver)
@@ -148,6 +150,24 @@ def simulate(
         qs, ws, sol = solve(*flat, per_body)
         qs, ws = jnp.swapaxes(qs, 0, 1), jnp.swapaxes(ws, 0, 1)
     return Simulation(qs.reshape(batch + (n, 4)), ws.reshape(batch + (n, 3)), sol)
+
+
+def _check_times(ts, ts_host, dt0, solver):
+    """``ts`` finite and strictly increasing, ``dt0`` finite and positive, ``solver`` a diffrax
+    solver: ``ValueError``/``TypeError`` naming the argument where the values are known (an
+    eager call or a concrete ``ts``); a traced ``ts`` is checked at run time (``eqx.error_if``)."""
+    if solver is not None and not isinstance(solver, diffrax.AbstractSolver):
+        raise TypeError(f"argument 'solver' must be a diffrax solver instance (e.g. jaxquat.RKMK4()), got {solver!r}")
+    if dt0 is not None and not isinstance(dt0, jax.core.Tracer):
+        value = np.asarray(dt0)
+        if value.shape != () or not np.isfinite(value) or value <= 0:
+            raise ValueError(f"argument 'dt0' must be a finite positive step size, got {dt0!r}")
+    message = "argument 'ts' must be finite and strictly increasing"
+    if ts_host is not None:
+        if not np.all(np.isfinite(ts_host)) or not np.all(np.diff(ts_host) > 0):
+            raise ValueError(f"{message}, got {ts_host}")
+        return ts
+    return eqx.error_if(ts, ~(jnp.all(jnp.isfinite(ts)) & jnp.all(ts[1:] > ts[:-1])), message)
 
 
 def _is_concrete_diagonal(inertia) -> bool:

@@ -432,3 +432,53 @@ def test_every_public_name_is_in_the_contract():
     suffixes = ("_nearest", "_body", "_space", "_inertia", "_t")
     covered = set(REGISTRY) | {n[: -len(s)] for n in REGISTRY for s in suffixes if n.endswith(s)}
     assert set(jq.__all__) <= covered | elsewhere, set(jq.__all__) - covered - elsewhere
+
+
+# ------------------------------------------------------------------ NaN and complex input
+
+# Arguments a function does not read (a body-frame result does not depend on the attitude):
+# a NaN there rightly leaves the output finite.
+UNUSED_ARGS = {("kinetic_energy", 0), ("angular_acceleration_inertia", 0), ("inverse_dynamics", 0)}
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_nan_in_gives_nan_out_for_that_element_only(name):
+    """A NaN in one element of any argument comes out as NaN in that element's result (never a
+    plausible finite value, as the NaN-safe idiom once produced) and leaves the other elements
+    alone; or, for inertia tensors checked eagerly, raises an error naming the argument."""
+    fn, args, _ = _make(name, SMOOTH_Q)
+    for i in range(len(args)):
+        bad = [np.array(a, np.float64) for a in args]
+        bad[i][3] = np.nan  # every entry of element 3 of argument i
+        try:
+            out = fn(*[jnp.asarray(a, DTYPE) for a in bad])
+        except ValueError as err:
+            assert "argument" in str(err), f"{name}: NaN in argument {i} raised an unclear error: {err}"
+            continue
+        leaves = [np.asarray(o) for o in _leaves(out)]
+        for o in leaves:
+            assert not np.isnan(np.delete(o, 3, axis=0)).any(), f"{name}: NaN in argument {i} leaked to other elements"
+        if (name, i) not in UNUSED_ARGS:
+            assert any(np.isnan(o[3]).any() for o in leaves), f"{name}: NaN in argument {i} gave a finite result"
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_complex_input_raises_type_error(name):
+    """Complex arrays and Python lists of complex numbers are rejected like integers (they would
+    silently lose their imaginary part)."""
+    fn, args, _ = _make(name, SMOOTH_Q[:1])
+    for i in range(len(args)):
+        as_array = [jnp.asarray(a, DTYPE) for a in args]
+        as_array[i] = jnp.asarray(args[i]).astype(jnp.complex64)
+        with pytest.raises(TypeError, match="floating dtype"):
+            fn(*as_array)
+        as_list = [jnp.asarray(a, DTYPE) for a in args]
+        as_list[i] = (np.asarray(args[i]) + 1j).tolist()
+        with pytest.raises(TypeError, match="floating dtype"):
+            fn(*as_list)
+
+
+def test_lists_of_booleans_are_rejected_and_integer_lists_accepted():
+    with pytest.raises(TypeError, match="'q' must have a floating dtype"):
+        jq.normalize([True, False, False, False])
+    assert_close(jq.normalize([2, 0, 0, 0]), [1.0, 0.0, 0.0, 0.0], tol=0)

@@ -150,3 +150,15 @@ def test_mrp_against_scipy(seed):
     shadow = -np.asarray(p, np.float64) / np.maximum(np.sum(np.asarray(p, np.float64) ** 2, -1, keepdims=True), 1e-30)
     ok = np.linalg.norm(np.asarray(p), axis=-1) > 1e-3
     assert_same_rotation(from_mrp(shadow[ok].astype(DTYPE)), np.asarray(q)[ok], tol=100 * TOL)
+
+
+def test_from_axis_angle_with_a_zero_axis():
+    """No axis and a non-zero angle: no rotation exists, so all four components are NaN (eager
+    and under jit, element-wise); a zero angle gives the identity whatever the axis."""
+    axes = jnp.asarray([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 2.0]], DTYPE)
+    angles = jnp.asarray([1.0, 0.0, 1.0], DTYPE)
+    for out in (jq.from_axis_angle(axes, angles), from_axis_angle(axes, angles)):
+        out = np.asarray(out)
+        assert np.all(np.isnan(out[0]))
+        np.testing.assert_array_equal(out[1], [1.0, 0.0, 0.0, 0.0])
+        assert np.all(np.isfinite(out[2]))

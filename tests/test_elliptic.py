@@ -131,3 +131,12 @@ def test_bad_input():
         elliprj(1.0, 1.0, 1.0, jnp.ones(2, jnp.int32))
     with pytest.raises(ValueError, match="broadcast"):
         ellipj(jnp.ones(3), jnp.ones(4))
+
+
+def test_outside_the_domain_gives_nan_as_scipy_does():
+    m = jnp.asarray([1.5, 2.0, np.inf, np.nan], DTYPE)
+    assert np.all(np.isnan(np.asarray(ellipk(m)))) and np.all(np.isnan(sp.ellipk(np.asarray(m))))
+    for out in ellipj(jnp.full(4, 0.3, DTYPE), m):
+        assert np.all(np.isnan(np.asarray(out)))
+    # negative m is inside the domain
+    assert_close(ellipk(jnp.asarray(-3.0, DTYPE)), sp.ellipk(-3.0), tol=1e-12 if X64 else 1e-5)

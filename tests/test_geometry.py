@@ -136,3 +136,44 @@ def test_slerp_stable_as_p_approaches_q():
         assert_close(out, ref, tol=10 * TOL)
         g = jax.jacrev(lambda x: jq.slerp(p, x, 0.3))(q)
         assert np.all(np.isfinite(np.asarray(g)))
+
+
+# ------------------------------------------------------------------ bad input: empty sets, weights, no information
+
+def test_mean_rejects_an_empty_set_and_bad_weights():
+    with pytest.raises(ValueError, match=r"'q' must hold at least one rotation.*\(0, 4\)"):
+        jq.mean(jnp.zeros((0, 4), DTYPE))
+    with pytest.raises(ValueError, match=r"'q' must hold at least one rotation"):
+        jax.jit(jq.mean)(jnp.zeros((3, 0, 4), DTYPE))  # at trace time
+    q = jnp.asarray(random_quats(3, 4), DTYPE)
+    for w, match in [([1.0, -1.0, 1.0, 1.0], "non-negative"), ([0.0] * 4, "positive sum"),
+                     ([1.0, np.nan, 1.0, 1.0], "finite"), ([1.0, np.inf, 1.0, 1.0], "finite")]:
+        with pytest.raises(ValueError, match=f"'weights' must.*{match}"):
+            jq.mean(q, jnp.asarray(w, DTYPE))
+
+
+def test_mean_under_jit_gives_nan_only_for_sets_with_bad_weights():
+    q = jnp.asarray(random_quats(4, 12), DTYPE).reshape(3, 4, 4)
+    w = jnp.asarray([[1.0, 2.0, 1.0, 1.0], [1.0, -1.0, 1.0, 1.0], [0.0, 0.0, 0.0, 0.0]], DTYPE)
+    out = np.asarray(jax.jit(jq.mean)(q, w))
+    assert np.all(np.isfinite(out[0])) and np.all(np.isnan(out[1:]))
+    assert_same_rotation(out[0], jq.mean(q[0], w[0]))
+
+
+def test_align_vectors_without_information_gives_nan_and_empty_sets_raise():
+    with pytest.raises(ValueError, match=r"'a' must hold at least one vector pair.*\(0, 3\)"):
+        jq.align_vectors(jnp.zeros((0, 3), DTYPE), jnp.zeros((0, 3), DTYPE))
+    one = jnp.asarray([[1.0, 2.0, 3.0]], DTYPE)
+    zero = jnp.zeros((1, 3), DTYPE)
+    for a, b in [(zero, one), (one, zero)]:
+        assert np.all(np.isnan(np.asarray(jq.align_vectors(a, b))))
+        assert np.all(np.isnan(np.asarray(jax.jit(jq.align_vectors)(a, b))))
+    a = jnp.asarray(random_vectors(5, 4), DTYPE)
+    assert np.all(np.isnan(np.asarray(jq.align_vectors(jnp.zeros_like(a), a))))
+    with pytest.raises(ValueError, match="'weights' must.*non-negative"):
+        jq.align_vectors(a, a, jnp.asarray([1.0, -1.0, 1.0, 1.0], DTYPE))
+    # Batched under jit: only the element without information is NaN.
+    batch_a = jnp.stack([a, jnp.zeros_like(a)])
+    out = np.asarray(jax.jit(jq.align_vectors)(batch_a, jnp.stack([a, a])))
+    assert_same_rotation(out[0], [1.0, 0.0, 0.0, 0.0], tol=1e-6 if not X64 else 1e-12)
+    assert np.all(np.isnan(out[1]))

@@ -292,3 +292,34 @@ def test_scan_path_gradient_and_unit_norm_in_float32_too():
     q = jq.simulate(q0, jnp.asarray([0.3, -2.0, 1.1], DTYPE), inertia, ts, solver=jq.RKMK4(), dt0=0.01).q
     drift = float(jnp.abs(jq.norm(q) - 1).max())
     assert drift < (1e-14 if X64 else 5e-7), drift
+
+
+@pytest.mark.parametrize(
+    "kwargs, error, match",
+    [
+        (dict(ts=[1.0, 0.0]), ValueError, "'ts' must be finite and strictly increasing"),
+        (dict(ts=[0.0, 2.0, 1.0]), ValueError, "'ts' must be finite and strictly increasing"),
+        (dict(ts=[0.0, 1.0, 1.0]), ValueError, "'ts' must be finite and strictly increasing"),
+        (dict(ts=[0.0, np.nan]), ValueError, "'ts' must be finite and strictly increasing"),
+        (dict(ts=[0.0, np.inf]), ValueError, "'ts' must be finite and strictly increasing"),
+        (dict(solver=jq.RKMK4(), dt0=0.0), ValueError, "'dt0' must be a finite positive step size"),
+        (dict(solver=jq.RKMK4(), dt0=np.nan), ValueError, "'dt0' must be a finite positive step size"),
+        (dict(solver=jq.RKMK4(), dt0=-0.1), ValueError, "'dt0' must be a finite positive step size"),
+        (dict(solver="RKMK4", dt0=0.1), TypeError, "'solver' must be a diffrax solver instance"),
+    ],
+)
+def test_simulate_rejects_bad_times_steps_and_solvers(kwargs, error, match):
+    args = dict(ts=[0.0, 1.0])
+    args.update(kwargs)
+    ts = jnp.asarray(args.pop("ts"), DTYPE)
+    with pytest.raises(error, match=match):
+        jq.simulate(jnp.asarray([1.0, 0, 0, 0], DTYPE), jnp.asarray([0.1, 1.0, 0.1], DTYPE),
+                    jnp.diag(jnp.asarray([1.0, 2.0, 3.0], DTYPE)), ts, **args)
+
+
+def test_simulate_checks_a_traced_ts_at_run_time():
+    q0, w0 = jnp.asarray([1.0, 0, 0, 0], DTYPE), jnp.asarray([0.1, 1.0, 0.1], DTYPE)
+    run = jax.jit(lambda ts: jq.simulate(q0, w0, jnp.diag(jnp.asarray([1.0, 2.0, 3.0], DTYPE)), ts).q)
+    assert np.all(np.isfinite(np.asarray(run(jnp.asarray([0.0, 1.0], DTYPE)))))
+    with pytest.raises(Exception, match="'ts' must be finite and strictly increasing"):
+        run(jnp.asarray([1.0, 0.0], DTYPE)).block_until_ready()

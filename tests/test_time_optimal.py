@@ -81,11 +81,31 @@ def test_single_axis_authority_gives_the_eigenaxis_bang_bang_time():
     np.testing.assert_allclose(u, np.where(np.arange(10) < 5, 1.0, -1.0), atol=1e-3)
 
 
-def test_symmetric_180_beats_the_eigenaxis_time_with_bang_bang_torque():
-    r = jq.minimum_time_reorientation(np.eye(3), np.ones(3), Q0, [0.0, 1.0, 0.0, 0.0], **FAST)
-    assert float(r.violation) < 1e-5
-    assert float(r.time) < 2 * np.sqrt(np.pi) * 0.98  # the eigenaxis manoeuvre takes 2 sqrt(pi)
-    assert np.mean(np.abs(np.asarray(r.controls)) > 0.99) > 0.7  # most of the time at the bounds
+@pytest.fixture(scope="module")
+def symmetric_180():
+    return jq.minimum_time_reorientation(np.eye(3), np.ones(3), Q0, [0.0, 1.0, 0.0, 0.0], **FAST)
+
+
+def test_symmetric_180_is_a_converged_optimum_shorter_than_the_eigenaxis_time(symmetric_180):
+    r = symmetric_180
+    assert float(r.violation) < 1e-10
+    assert float(r.kkt_residual) < 1e-8  # a KKT point of the discrete problem, not a budget's end
+    # The eigenaxis manoeuvre takes 2 sqrt(pi) = 3.5449; the 10-interval optimum is 3.2596 (8 % shorter)
+    # and lies above the continuous optimum (Bilimoria-Wie: 3.2430), so both margins are > 0.5 %.
+    assert 3.243 * 1.002 < float(r.time) < 2 * np.sqrt(np.pi) * 0.95
+
+
+def test_symmetric_180_torque_is_bang_bang_where_the_switching_function_is_nonzero(symmetric_180):
+    """Stationarity in the controls: with ``u = b sin(p)``, ``dL/dp = sigma b cos(p) = 0``, so every
+    control whose switching function ``sigma = d(lam . c)/du`` is not zero sits on a bound. Checked
+    on the converged solution, where it must hold. (Which bound is not fixed by a per-interval sign
+    rule in the discrete problem: that is the continuous minimum principle's needle variation.)"""
+    r = symmetric_180
+    sigma, u = np.asarray(r.switching), np.asarray(r.controls)
+    active = np.abs(sigma) > 1e-6 * np.abs(sigma).max()  # the zeros are ~1e-15; the non-zeros >= 1e-2
+    assert np.all(np.abs(np.abs(u[active]) - 1.0) < 1e-8)
+    # Most of the time at the bounds: only intervals that hold a switch are interior (4 of 30 here).
+    assert active.mean() > 0.8
 
 
 def test_warm_start_keeps_feasibility_and_does_not_lose_time(asymmetric):
@@ -101,6 +121,10 @@ def test_warm_start_keeps_feasibility_and_does_not_lose_time(asymmetric):
     [
         (dict(inertia=np.eye(2)), r"'inertia'.*3, 3\)"),
         (dict(torque_bound=[1.0, -1.0, 1.0]), "'torque_bound' must be positive"),
+        (dict(torque_bound=[1.0, np.inf, 1.0]), "'torque_bound' must be positive and finite"),
+        (dict(q0=np.zeros(4)), "'q0' must be a finite non-zero quaternion"),
+        (dict(qf=[np.nan, 0.0, 0.0, 1.0]), "'qf' must be a finite non-zero quaternion"),
+        (dict(omega0=[0.0, np.inf, 0.0]), "'omega0' must be finite"),
         (dict(torque_bound=[1.0, 1.0]), r"'torque_bound'.*\(\.\.\., 3\)"),
         (dict(q0=np.ones((2, 4))), "'q0' must be a single value"),
         (dict(qf=[1.0, 0.0, 0.0]), r"'qf'.*\(\.\.\., 4\)"),
