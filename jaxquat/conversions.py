@@ -160,11 +160,13 @@ def from_matrix(m: Float[Array, "*batch 3 3"], *, nearest: bool = False) -> Floa
     including 180-degree ones.
 
     Matrices that are not exactly orthonormal: by default the result is the
-    normalised Shepperd column, a unit quaternion that agrees with the nearest
-    rotation to first order in the deviation ``|M^T M - I|``. With
+    normalised Shepperd column, a unit quaternion whose angle from the nearest
+    rotation grows linearly with the deviation: about ``0.2 |M^T M - I|_F`` (median
+    over random perturbations of size 1e-5 to 1e-2; it is not second order). With
     ``nearest=True`` the result is the eigenvector of ``K`` with the largest
     eigenvalue (Bar-Itzhack 2000), the rotation closest to ``M`` in the
-    Frobenius norm, at the cost of a 4x4 ``eigh`` per matrix. Neither raises on
+    Frobenius norm (the polar factor's quaternion, to rounding), at the cost of
+    a 4x4 ``eigh`` per matrix. Neither raises on
     a reflection or a singular matrix: validate ``det(M) > 0`` yourself if needed.
 
     Gradients: both methods are smooth along SO(3). Off SO(3) the Shepperd

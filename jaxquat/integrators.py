@@ -116,7 +116,15 @@ class _LieSolver(diffrax.AbstractSolver):
 
 
 class LieEuler(_LieSolver):
-    """First-order Lie-Euler: ``q <- q Exp(h w)``, ``w <- w + h f(t, q, w)``. Fixed steps."""
+    """First-order Lie-Euler: ``q <- q Exp(h w)``, ``w <- w + h f(t, q, w)``. Fixed steps.
+
+    Explicit and first order: ``|q| = 1`` is kept, but the energy is not. Euler's equations
+    stepped explicitly gain energy, roughly like ``exp(c h t) - 1``; measured for
+    ``I = diag(1, 2, 3)``, ``w0 = (0.1, 1, 0.1)``: +11 % at ``h = 0.01, t = 100``, +312 % at
+    ``t = 1000``, +1 % at ``h = 1e-3, t = 100``, and NaN (overflow) after about 10^6 steps
+    of ``h = 0.01``. Keep ``h t`` below about 0.1 for a 1 % energy error; for long runs use
+    :class:`RKMK4`, :class:`RKMK45` or the splittings (see ``docs/integrators.md``).
+    """
 
     def order(self, terms):
         return 1
@@ -315,7 +323,7 @@ class RigidBodySplit(_LieSolver):
 
         (q1, w1), _ = jax.lax.scan(sub, (q, w), (weights, offsets))
         # A run-time check (under jit the inertia's values are unknown at trace time).
-        off_diagonal = jnp.any(rb.inertia * (1 - jnp.eye(3, dtype=rb.inertia.dtype)) != 0)
+        off_diagonal = jnp.any(rb.inertia * jnp.broadcast_to(1 - jnp.eye(3, dtype=rb.inertia.dtype), rb.inertia.shape) != 0)
         q1 = eqx.error_if(
             q1, off_diagonal,
             f"{type(self).__name__} needs the inertia in principal axes (a diagonal tensor): use "
