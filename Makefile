@@ -27,17 +27,19 @@ demo: $(STAMP)
 
 # The whole suite, once in float64 and once in float32, on two worker processes
 # (pytest-xdist; a test file stays on one worker so its jitted functions compile once).
+# A persistent compilation cache made new for each run (never kept between runs) lets the
+# example and notebook subprocesses reuse what the test workers compiled (and vice versa).
 PYTEST := $(PY) -m pytest -n 2 --dist loadfile
+CACHED := cache=$$(mktemp -d) && trap 'rm -rf "$$cache"' EXIT && export JAX_COMPILATION_CACHE_DIR="$$cache" &&
 
 test: $(STAMP)
-	JAX_ENABLE_X64=1 $(PYTEST)
-	JAX_ENABLE_X64=0 $(PYTEST)
+	$(CACHED) JAX_ENABLE_X64=1 $(PYTEST) && JAX_ENABLE_X64=0 $(PYTEST)
 
 test64: $(STAMP)
-	JAX_ENABLE_X64=1 $(PYTEST)
+	$(CACHED) JAX_ENABLE_X64=1 $(PYTEST)
 
 test32: $(STAMP)
-	JAX_ENABLE_X64=0 $(PYTEST)
+	$(CACHED) JAX_ENABLE_X64=0 $(PYTEST)
 
 # Rewrites the generated sections of docs/benchmarks.md (the text around them stays).
 bench: $(BENCH_STAMP)

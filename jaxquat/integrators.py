@@ -322,6 +322,7 @@ class RigidBodySplit(_LieSolver):
             return self._strang(rb, t0 + offset * h, weight * h, qq, ww, args), None
 
         (q1, w1), _ = jax.lax.scan(sub, (q, w), (weights, offsets))
+        q1 = _unit(q1)  # as the RKMK solvers: float32 rounding of |q| must not walk over 1e5 steps
         # A run-time check (under jit the inertia's values are unknown at trace time).
         off_diagonal = jnp.any(rb.inertia * jnp.broadcast_to(1 - jnp.eye(3, dtype=rb.inertia.dtype), rb.inertia.shape) != 0)
         q1 = eqx.error_if(

@@ -205,63 +205,60 @@ def _polish(x, pr: _Problem, substeps: int):
 
 def _switching(x, lam, pr: _Problem, substeps: int):
     """The discrete switching function ``sigma = d(lam . c)/du`` ``(intervals, 3)`` at fixed time:
-    at a minimum each control with ``sigma != 0`` is on its bound with the sign of ``-sigma``."""
+    stationarity in ``p`` is ``sigma b cos(p) = 0``, so a control with ``sigma != 0`` is on a bound."""
     time, u = _unpack(x, pr)
     return jax.grad(lambda uu: lam @ _residual(*_rollout(pr.inertia, pr.q0, pr.w0, time, uu, substeps,
                                                           trajectory=False)[0], pr.qf, pr.wf))(u)
 
 
-def _kkt(z, lam, unravel, pr: _Problem, substeps: int):
-    """Gradient of the Lagrangian ``T + lam . c`` and the residual ``c`` at the flat iterate ``z``,
-    with the Jacobian ``J`` of ``c`` and the Hessian of the Lagrangian (exact, by autodiff)."""
-    def residual(y):
-        return _terminal_residual(unravel(y), pr, substeps)
-
-    def lagrangian(y, mult):
-        return _unpack(unravel(y), pr)[0] + mult @ residual(y)
-
-    grad = jax.grad(lagrangian)(z, lam)
-    hess = jax.jacfwd(jax.grad(lagrangian))(z, lam)
-    return grad, residual(z), jax.jacfwd(residual)(z), hess
-
-
 @functools.partial(jax.jit, static_argnames=("substeps", "iters"))
 def _refine(x, pr: _Problem, substeps: int, iters: int):
     """Newton's method on the KKT conditions of ``min T s.t. c = 0`` (SQP with the exact Hessian),
-    one start at a time (vmapped): ``[[H, J^T], [J, 0]] (dz, lam) = -(grad T, c)``, from the
-    least-squares multipliers ``lam = -(J J^T)^-1 J grad T``.
+    one start at a time (vmapped): ``[[H, J^T], [J, 0]] (dz, lam) = -(grad T, c)``, the first
+    step from the least-squares multipliers ``lam = -(J J^T)^-1 J grad T``.
 
     Why: the augmented-Lagrangian phase stops where its fixed iteration budget ends, and where
     that is depends on rounding, so on the CPU's vector ISA (XLA's AVX2 and AVX-512 code gave
     times 1.6e-3 apart on the suite's 180-degree problem). At the KKT point the answer no longer
-    depends on the path. A step is kept only while it lowers the KKT residual
-    ``|(grad T + J^T lam, c)|``, so a start never gets worse. Returns the iterates, their
-    multipliers and KKT residuals."""
+    depends on the path. Full Newton steps (the residual may rise before it falls
+    quadratically; a merit line search and a Hessian shift were tried and stalled every start
+    of the suite's problems); each start returns the iterate with the least KKT residual
+    ``|(grad T + J^T lam, c)|`` met on the way, so it never ends worse than it began.
+    ``grad T`` is ``T`` in the slot of ``sigma`` (``T = T_ref exp(sigma)``); ``J`` by reverse mode
+    (6 rows).
+    Returns per start: the iterate, its multipliers, KKT residual, time, ``|c|`` and
+    switching function."""
     flat0, unravel = ravel_pytree(jax.tree_util.tree_map(lambda a: a[0], x))
     n = flat0.shape[0]
     eye6 = jnp.eye(6, dtype=flat0.dtype)
 
-    def step(carry, _):
+    def residual(z):
+        return _terminal_residual(unravel(z), pr, substeps)
+
+    def step(carry, k):
         z, mult, best = carry
-        g, c, jac, hess = _kkt(z, mult, unravel, pr, substeps)
+        c, pullback = jax.vjp(residual, z)
+        jac = jax.vmap(pullback)(eye6)[0]
+        grad_t = jax.grad(lambda y: _unpack(unravel(y), pr)[0])(z)  # (0, ..., T) in sigma's slot
+        mult = jnp.where(k == 0, -jnp.linalg.solve(jac @ jac.T + 1e-14 * eye6, jac @ grad_t), mult)
+        g = grad_t + jac.T @ mult
         res = jnp.sqrt(g @ g + c @ c)
         best = jax.tree_util.tree_map(lambda a, b: jnp.where(res < best[2], a, b), (z, mult, res), best)
+        hess = jax.jacfwd(jax.grad(lambda y: _unpack(unravel(y), pr)[0] + mult @ residual(y)))(z)
         kkt = jnp.block([[hess, jac.T], [jac, jnp.zeros((6, 6), z.dtype)]])
-        sol = jnp.linalg.solve(kkt, -jnp.concatenate([g - jac.T @ mult, c]))
+        sol = jnp.linalg.solve(kkt, -jnp.concatenate([grad_t, c]))
         ok = jnp.all(jnp.isfinite(sol))  # a singular system leaves the iterate where it is
         return (jnp.where(ok, z + sol[:n], z), jnp.where(ok, sol[n:], mult), best), None
 
     def one(z):
-        g, _, jac, _ = _kkt(z, jnp.zeros(6, z.dtype), unravel, pr, substeps)  # g = grad T
-        mult = -jnp.linalg.solve(jac @ jac.T + 1e-14 * eye6, jac @ g)
-        inf = jnp.asarray(jnp.inf, z.dtype)
-        (z, mult, best), _ = jax.lax.scan(step, (z, mult, (z, mult, inf)), None, length=iters)
-        g, c, _, _ = _kkt(z, mult, unravel, pr, substeps)  # the last iterate competes too
-        res = jnp.sqrt(g @ g + c @ c)
-        return jax.tree_util.tree_map(lambda a, b: jnp.where(res < best[2], a, b), (z, mult, res), best)
+        zero, inf = jnp.zeros(6, z.dtype), jnp.asarray(jnp.inf, z.dtype)
+        # iters + 1 evaluations: the last one only scores the final iterate (its step is dropped).
+        (_, _, (z, mult, res)), _ = jax.lax.scan(step, (z, zero, (z, zero, inf)), jnp.arange(iters + 1))
+        xi = unravel(z)
+        violation = jnp.linalg.norm(_terminal_residual(xi, pr, substeps))
+        return xi, mult, res, _unpack(xi, pr)[0], violation, _switching(xi, mult, pr, substeps)
 
-    z, mult, res = jax.vmap(one)(jax.vmap(lambda xi: ravel_pytree(xi)[0])(x))
-    return jax.vmap(unravel)(z), mult, res
+    return jax.vmap(one)(jax.vmap(lambda xi: ravel_pytree(xi)[0])(x))
 
 
 @functools.partial(jax.jit, static_argnames=("substeps", "inner"))
@@ -389,18 +386,15 @@ def minimum_time_reorientation(
         bar.close()
     # Converge every start to its KKT point, then take the shortest feasible one: the choice is
     # made between converged optima, not between wherever each start's budget ran out.
-    x_ref, mults, kkt_res = _refine({key: jnp.asarray(v) for key, v in best_x.items()}, problem, substeps,
-                                    refine)
-    c_ref = jax.vmap(lambda xi: _terminal_residual(xi, problem, substeps))(x_ref)
-    t_ref_all = np.asarray(jax.vmap(lambda xi: _unpack(xi, problem)[0])(x_ref))
-    viol_ref = np.linalg.norm(np.asarray(c_ref), axis=-1)
-    sigmas = np.asarray(jax.vmap(lambda xi, m: _switching(xi, m, problem, substeps))(x_ref, mults))
-    converged = np.asarray(kkt_res) <= _CONVERGED
+    x_ref, mults, kkt_res, t_ref_all, viol_ref, sigmas = (
+        jax.tree_util.tree_map(np.asarray, out)
+        for out in _refine({key: jnp.asarray(v) for key, v in best_x.items()}, problem, substeps, refine))
+    converged = kkt_res <= _CONVERGED
     feasible = (viol_ref <= tol) & (converged if np.any(converged & (viol_ref <= tol)) else True)
     best_time = np.where(feasible, t_ref_all, np.inf)
     k = int(np.argmin(best_time)) if np.any(feasible) else int(np.argmin(viol_ref))
-    xk = {key: v[k] for key, v in x_ref.items()}
-    multipliers = mults[k]
+    xk = {key: jnp.asarray(v[k]) for key, v in x_ref.items()}
+    multipliers = jnp.asarray(mults[k])
     time, u = _unpack(xk, problem)
     switching = jnp.asarray(sigmas[k])
     (qT, wT), (qs, ws) = _rollout(inertia, q0, w0, time, u, substeps, trajectory=True)
@@ -411,4 +405,4 @@ def minimum_time_reorientation(
     torque = jnp.concatenate([torque, torque[-1:]])
     violation = jnp.linalg.norm(_residual(qT, wT, qf, wf))
     return Reorientation(time, ts, qs, ws, torque, u, violation, jnp.asarray(best_time), jnp.asarray(history),
-                         multipliers, switching, kkt_res[k])
+                         multipliers, switching, jnp.asarray(kkt_res[k]))

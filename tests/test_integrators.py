@@ -355,13 +355,11 @@ def test_default_torque_free_simulate_keeps_unit_norm_over_many_saved_times():
 
 def test_forward_mode_through_simulate():
     """jacfwd works on the closed-form path as it is, and on diffeqsolve with ForwardMode; without
-    it the error names the adjoint to pass. Forward and reverse agree."""
+    it the error names the adjoint to pass. Checked against central differences of the forward
+    map (step 1e-5 in float64, 1e-2 in float32; reverse mode is tested elsewhere)."""
     q0, w0 = jnp.asarray([1.0, 0, 0, 0], DTYPE), jnp.asarray([0.1, 1.0, 0.1], DTYPE)
     inertia = jnp.diag(jnp.asarray([1.0, 2.0, 3.0], DTYPE))
     ts = jnp.asarray([0.0, 1.0], DTYPE)
-    free = lambda w: jq.simulate(q0, w, inertia, ts).q[-1]  # noqa: E731
-    both = jax.jit(lambda w: (jax.jacfwd(free)(w), jax.jacrev(free)(w)))  # one compile, not op-by-op dispatch
-    assert_close(*both(w0), tol=1e-10 if X64 else 1e-4, what="free jacfwd")
 
     def torque(t, q, w, args):
         return jnp.asarray([0.1, 0.0, -0.05], DTYPE) * jnp.cos(t)
@@ -370,8 +368,10 @@ def test_forward_mode_through_simulate():
         return lambda w: jq.simulate(q0, w, inertia, ts, torque=torque, adjoint=adjoint, solver=jq.RKMK4(),
                                      dt0=0.05).q[-1]
 
-    checkpointed = forced(diffrax.RecursiveCheckpointAdjoint())
     with pytest.raises(TypeError, match=r"adjoint=diffrax\.ForwardMode\(\)"):
-        jax.jit(jax.jacfwd(checkpointed))(w0)
-    both = jax.jit(lambda w: (jax.jacfwd(forced(diffrax.ForwardMode()))(w), jax.jacrev(checkpointed)(w)))
-    assert_close(*both(w0), tol=1e-10 if X64 else 1e-4, what="forced jacfwd vs jacrev")
+        jax.jacfwd(forced(diffrax.RecursiveCheckpointAdjoint()))(w0)
+    h = 1e-5 if X64 else 1e-2
+    for f in (lambda w: jq.simulate(q0, w, inertia, ts).q[-1], forced(diffrax.ForwardMode())):
+        value = jax.jit(f)
+        fd = jnp.stack([(value(w0 + h * e) - value(w0 - h * e)) / (2 * h) for e in jnp.eye(3, dtype=DTYPE)], -1)
+        assert_close(jax.jit(jax.jacfwd(f))(w0), fd, tol=1e-8 if X64 else 2e-3, what="jacfwd vs central differences")
