@@ -27,6 +27,7 @@ of magnitude.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jax import Array, lax
 from jaxtyping import Float
@@ -84,10 +85,46 @@ def _sn_cn_dn(phi: Array, m: Array, mc: Array) -> tuple[Array, Array, Array]:
     return sn, cn, jnp.sqrt(mc + m * cn * cn)  # dn = sqrt(1 - m sn^2), no cancellation near m = 1
 
 
+@jax.custom_jvp
+def _am(u: Array, m: Array, mc: Array) -> Array:
+    """The unwrapped amplitude ``am(u | m)``; ``mc = 1 - m`` given separately for accuracy near ``m = 1``.
+
+    Differentiating the AGM/Landen loop loses the derivative in ``m`` as ``m -> 1``
+    (it differentiates ``sqrt(1 - m)``, whose singularity the exact derivative does not
+    have) and gives NaN at ``m = 1``. The rule below is the implicit derivative of
+    ``u = F(am | m)``: ``d am = dn (du - F_m dm)`` with, for ``am = j pi + r``
+    (``|r| <= pi/2``), ``F_m = 2 j K'(m) + sin^3 r R_D(cos^2 r, 1, dn^2) / 6`` and
+    ``K'(m) = R_D(0, 1, 1 - m) / 6``. The second term follows from the Carlson form of
+    ``E`` (DLMF 19.25.10), which cancels the ``1 / (m (1 - m))`` of the textbook formula
+    exactly, so it is regular at ``m = 1`` (and at ``m = 0``). The tangent of ``mc``
+    is not used: callers pass ``mc = 1 - m`` analytically.
+    """
+    steps, a_last = _agm(m, mc)
+    return _amplitude(u, steps, a_last)
+
+
+@_am.defjvp
+def _am_jvp(primals, tangents):
+    u, m, mc = primals
+    du, dm, _ = tangents
+    phi = _am(u, m, mc)
+    j = jnp.round(phi / jnp.pi)
+    s, c = _trig.sincos(phi - j * jnp.pi)
+    dn = jnp.sqrt(jnp.maximum(mc + m * c * c, 0.0))
+    one = jnp.ones_like(phi)
+    whole = j != 0
+    mc_safe = jnp.where(whole, jnp.maximum(mc, _tiny(mc)), one)
+    # R_D(x, y, z) = R_J(x, y, z, z); the partial and the complete one in one evaluation.
+    x = jnp.stack([c * c, _tiny(mc) * one])
+    z = jnp.stack([dn * dn, mc_safe])
+    rd = _rj(x, jnp.stack([one, one]), z, z)
+    f_m = s * s * s * rd[0] / 6 + jnp.where(whole, 2 * j * rd[1] / 6, 0.0)
+    return phi, dn * (du - f_m * dm)
+
+
 def _jacobi(u: Array, m: Array, mc: Array) -> tuple[Array, Array, Array, Array]:
     """``sn, cn, dn, am`` with the complementary parameter ``mc = 1 - m`` given separately."""
-    steps, a_last = _agm(m, mc)
-    phi = _amplitude(u, steps, a_last)
+    phi = _am(u, m, mc)
     return (*_sn_cn_dn(phi, m, mc), phi)
 
 
@@ -208,24 +245,35 @@ def elliprj(
     return _rj(*_broadcast((x, y, z, p), ("x", "y", "z", "p")))
 
 
-def _incomplete(phi: Array, m: Array, mc: Array, n: Array) -> tuple[Array, Array]:
-    """``F(phi | m)`` and ``Pi(n; phi | m)`` for unwrapped amplitudes ``phi`` (any real values).
+def _reduced_amplitude(sn: Array, cn: Array) -> tuple[Array, Array, Array]:
+    """``(h, sin r, cos r)`` with ``atan2(sn, cn) = h pi + r``, ``|r| <= pi/2`` (``h`` in -1, 0, 1)."""
+    back = cn < 0
+    h = jnp.where(back, jnp.where(sn < 0, -1.0, 1.0), 0.0).astype(sn.dtype)
+    return h, jnp.where(back, -sn, sn), jnp.abs(cn)
 
-    ``phi`` is shaped ``(k, *batch)`` (``k`` amplitudes sharing ``m, n`` of shape
-    ``batch``); ``phi = j pi + r`` with ``|r| <= pi/2`` gives ``F = 2 j K + F(r)``,
-    likewise ``Pi``; ``n <= 0``. The ``k`` partial integrals and the complete ones
-    go through one ``R_F`` and one ``R_J`` evaluation.
+
+def _incomplete(j: Array, s: Array, c: Array, m: Array, mc: Array, n: Array) -> tuple[Array, Array]:
+    """``F(phi | m)`` and ``Pi(n; phi | m)`` at the unwrapped amplitude ``phi = j pi + r``.
+
+    The amplitude comes as the integer ``j`` and ``sin r = s``, ``cos r = c >= 0``
+    (``|r| <= pi/2``), each shaped ``(k, *batch)`` (``k`` amplitudes sharing ``m, n``
+    of shape ``batch``): ``F = 2 j K + F(r)``, likewise ``Pi``; ``n <= 0``. Taking
+    ``sin r`` and ``cos r`` rather than ``r`` keeps full relative precision in
+    ``cos r`` near ``r = +-pi/2``, where ``1 - m sin^2 r`` is small as ``m -> 1`` and an
+    angle would lose ``eps / cos r``. The ``k`` partial integrals and the complete ones
+    go through one ``R_F`` and one ``R_J`` evaluation; the complete ones are replaced
+    by a safe dummy for batch elements where every ``j`` is 0 (so that ``m = 1`` has
+    finite derivatives).
     """
     m, mc, n = m[None], mc[None], n[None]
-    j = jnp.round(phi / jnp.pi)
-    r = phi - j * jnp.pi
-    s, c = _trig.sincos(r)
     s2, c2 = s * s, c * c
+    whole = jnp.any(j != 0, axis=0, keepdims=True)
+    mc_full = jnp.where(whole, jnp.maximum(mc, _tiny(mc)), 1.0)
     # Rows 0..k-1: the partial integrals at r; last row: the complete ones (sin r = 1,
     # cos r = 0; x = tiny instead of 0 keeps sqrt's forward-mode derivative finite and
     # changes R_F by O(sqrt(tiny)) ~ 1e-154).
     x = jnp.concatenate([c2, jnp.full_like(c2[:1], _tiny(c2))])
-    y = jnp.concatenate([mc + m * c2, mc])
+    y = jnp.concatenate([jnp.maximum(mc + m * c2, 0.0), mc_full])
     p = jnp.concatenate([1 - n * s2, 1 - n])
     rf = _rf(x, y, jnp.ones_like(x))
     rj = _rj(x, y, jnp.ones_like(x), p)

@@ -168,6 +168,30 @@ def dop853_reference(q0, w0, moments, ts):
     return sol.y[:4].T, sol.y[4:].T
 
 
+def run_example_in_process(script: str, *args: str) -> str:
+    """Run an example's ``main`` in this process (float64 pass only: examples switch float64
+    on) with ``sys.argv`` set; its stdout. Used where a test module has already compiled the
+    same jitted solver, so the example reuses it instead of tracing and compiling anew."""
+    import contextlib
+    import io
+    import pathlib
+    import runpy
+    import sys
+
+    root = pathlib.Path(__file__).parent.parent
+    path = root / script
+    argv, sys.argv = sys.argv, [str(path), *args]
+    sys.path.insert(0, str(path.parent))
+    buffer = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(buffer):
+            runpy.run_path(str(path), run_name="__main__")
+    finally:
+        sys.argv = argv
+        sys.path.remove(str(path.parent))
+    return buffer.getvalue()
+
+
 def run_example(*args: str) -> str:
     """Run ``python *args`` from the repository root (examples set float64 themselves); its stdout."""
     import pathlib

@@ -33,19 +33,6 @@ def test_inertia_identification_example(tmp_path):
     assert (tmp_path / "inertia_identification.png").stat().st_size > 10_000
 
 
-def test_time_optimal_reorientation_example(tmp_path):
-    text = run_example("examples/time_optimal_reorientation.py", "--intervals", "10", "--levels", "1", "--starts", "4",
-                "--outer", "6", "--inner", "80", "--no-progress", "--out", str(tmp_path))
-    lines = text.strip().splitlines()
-    assert lines[-1].startswith("minimum time: ") and lines[-2].startswith("terminal constraint violation: "), text
-    time = float(lines[-1].split(": ")[1])
-    assert time < 2 * (3.14159265358979 ** 0.5) * 0.98, text  # beats the eigenaxis bang-bang time 2 sqrt(pi)
-    assert float(lines[-2].split(": ")[1]) < 1e-5, text
-    saturated = int(re.search(r"^\s+10\s+\S+\s+\S+\s+(\d+) %$", text, re.M).group(1))
-    assert saturated > 70, text  # bang-bang: most torque values at the bound
-    assert (tmp_path / "time_optimal_reorientation.png").stat().st_size > 10_000
-
-
 def test_learned_controller_example(tmp_path):
     text = run_example("examples/learned_controller.py", "--steps", "6", "--batch", "16", "--bodies", "64",
                 "--no-progress", "--out", str(tmp_path))

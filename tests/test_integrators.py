@@ -356,7 +356,8 @@ def test_default_torque_free_simulate_keeps_unit_norm_over_many_saved_times():
 def test_forward_mode_through_simulate():
     """jacfwd works on the closed-form path as it is, and on diffeqsolve with ForwardMode; without
     it the error names the adjoint to pass. Checked against central differences of the forward
-    map (step 1e-5 in float64, 1e-2 in float32; reverse mode is tested elsewhere)."""
+    map (step 1e-5 in float64, 1e-2 in float32), and on the closed-form path reverse mode too, at
+    a generic state and on the separatrix."""
     q0, w0 = jnp.asarray([1.0, 0, 0, 0], DTYPE), jnp.asarray([0.1, 1.0, 0.1], DTYPE)
     inertia = jnp.diag(jnp.asarray([1.0, 2.0, 3.0], DTYPE))
     ts = jnp.asarray([0.0, 1.0], DTYPE)
@@ -371,10 +372,19 @@ def test_forward_mode_through_simulate():
     with pytest.raises(TypeError, match=r"adjoint=diffrax\.ForwardMode\(\)"):
         jax.jacfwd(forced(diffrax.RecursiveCheckpointAdjoint()))(w0)
     h = 1e-5 if X64 else 1e-2
-    for f in (lambda w: jq.simulate(q0, w, inertia, ts).q[-1], forced(diffrax.ForwardMode())):
-        value = jax.jit(f)
-        fd = jnp.stack([(value(w0 + h * e) - value(w0 - h * e)) / (2 * h) for e in jnp.eye(3, dtype=DTYPE)], -1)
-        assert_close(jax.jit(jax.jacfwd(f))(w0), fd, tol=1e-8 if X64 else 2e-3, what="jacfwd vs central differences")
+    closed_form = jax.jit(lambda w, inertia: jq.simulate(q0, w, inertia, ts).q[-1])
+    jac_closed_form = jax.jit(jax.jacfwd(lambda w, inertia: jq.simulate(q0, w, inertia, ts).q[-1]))
+    grad_closed_form = jax.jit(jax.grad(lambda w, inertia: jq.simulate(q0, w, inertia, ts).q[-1, 1]))
+    # The second state is on the separatrix (|L|^2 = 2 E I_mid), where both modes gave NaN.
+    for w, inertia_ in ((w0, inertia), (jnp.asarray([2.0, 0.5, 1.0], DTYPE), jnp.diag(jnp.asarray([3.0, 4.0, 6.0], DTYPE)))):
+        fd = jnp.stack([(closed_form(w + h * e, inertia_) - closed_form(w - h * e, inertia_)) / (2 * h)
+                        for e in jnp.eye(3, dtype=DTYPE)], -1)
+        assert_close(jac_closed_form(w, inertia_), fd, tol=1e-8 if X64 else 2e-3, what=f"jacfwd vs differences at {w}")
+        assert_close(grad_closed_form(w, inertia_), fd[1], tol=1e-8 if X64 else 2e-3, what=f"grad vs differences at {w}")
+    f = forced(diffrax.ForwardMode())
+    value = jax.jit(f)
+    fd = jnp.stack([(value(w0 + h * e) - value(w0 - h * e)) / (2 * h) for e in jnp.eye(3, dtype=DTYPE)], -1)
+    assert_close(jax.jit(jax.jacfwd(f))(w0), fd, tol=1e-8 if X64 else 2e-3, what="jacfwd vs central differences")
 
 
 @pytest.mark.parametrize("solver", [jq.RigidBodySplit(), jq.EulerPoinsotSplit()], ids=lambda s: type(s).__name__)

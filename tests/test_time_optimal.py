@@ -6,6 +6,8 @@ conditions, so these run in the float64 pass; small problems keep them fast."""
 
 from __future__ import annotations
 
+import re
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -13,7 +15,7 @@ from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
 import jaxquat as jq
-from helpers import X64
+from helpers import X64, run_example_in_process
 
 pytestmark = pytest.mark.skipif(not X64, reason="the optimiser needs float64 for 1e-6 terminal conditions")
 
@@ -136,3 +138,19 @@ def test_bad_input_raises_naming_the_argument(kwargs, match):
     args.update(kwargs)
     with pytest.raises((ValueError, TypeError), match=match):
         jq.minimum_time_reorientation(**args, intervals=4, starts=1, outer=1, inner=1)
+
+
+def test_time_optimal_reorientation_example(tmp_path):
+    """The example as documented (fast variant), run in this process: its first solve has the
+    fixtures' shapes and settings, so it reuses their compiled solver (in a subprocess it
+    traced and compiled it again: 40 s)."""
+    text = run_example_in_process("examples/time_optimal_reorientation.py", "--intervals", "10", "--levels", "1",
+                                  "--starts", "4", "--outer", "6", "--inner", "80", "--no-progress", "--out", str(tmp_path))
+    lines = text.strip().splitlines()
+    assert lines[-1].startswith("minimum time: ") and lines[-2].startswith("terminal constraint violation: "), text
+    time = float(lines[-1].split(": ")[1])
+    assert time < 2 * (3.14159265358979 ** 0.5) * 0.98, text  # beats the eigenaxis bang-bang time 2 sqrt(pi)
+    assert float(lines[-2].split(": ")[1]) < 1e-5, text
+    saturated = int(re.search(r"^\s+10\s+\S+\s+\S+\s+(\d+) %$", text, re.M).group(1))
+    assert saturated > 70, text  # bang-bang: most torque values at the bound
+    assert (tmp_path / "time_optimal_reorientation.png").stat().st_size > 10_000

@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 import scipy.special as sp
 from hypothesis import given
-from jax.test_util import check_grads
 
 import jaxquat as jq
 from helpers import DTYPE, NP_DTYPE, X64, assert_close, assert_same_rotation, dop853_reference, random_inertias, seeds
@@ -20,6 +19,10 @@ from helpers import DTYPE, NP_DTYPE, X64, assert_close, assert_same_rotation, do
 TOL = 1e-11 if X64 else 2e-4
 Q0 = np.array([0.9, 0.1, -0.3, 0.2]) / np.linalg.norm([0.9, 0.1, -0.3, 0.2])
 _propagate = jax.jit(jq.euler_poinsot)
+
+
+def _flat(*args):
+    return jnp.concatenate(jq.euler_poinsot(*args))
 
 
 def _random_bodies(seed, n):
@@ -93,11 +96,32 @@ def test_against_dop853_any_order_both_directions(seed):
             assert_close(w, w_ref, tol=2e-11, what=f"w body {k} sign {sign}")
 
 
-def _state_at_5(w, moments):
-    return jnp.concatenate(jq.euler_poinsot(jnp.asarray(Q0), w, moments, 5.0))
+_ALL = (0, 1, 2, 3)
+# One compiled pair of Jacobians (d/d q0, omega0, moments, t; forward and reverse) and one compiled
+# set of central differences serve every derivative test in this module.
+def _columns(jacobians):
+    return jnp.concatenate([j if j.ndim == 2 else j[:, None] for j in jacobians], axis=1)
 
 
-_jacobians = jax.jit(lambda w, moments: (jax.jacfwd(_state_at_5)(w, moments), jax.jacrev(_state_at_5)(w, moments)))
+_jacobians = jax.jit(lambda q0, w, m, t: (_columns(jax.jacfwd(_flat, argnums=_ALL)(q0, w, m, t)),
+                                           _columns(jax.jacrev(_flat, argnums=_ALL)(q0, w, m, t))))
+
+
+@jax.jit
+def _central_differences(q0, w, m, t, eps):
+    """Columns d/d q0, omega0, moments, t of the flat state, by central differences."""
+    steps = eps * jnp.eye(11, dtype=w.dtype)
+    f = jax.vmap(lambda d: _flat(q0 + d[:4], w + d[4:7], m + d[7:10], t + d[10]))
+    return ((f(steps) - f(-steps)) / (2 * eps)).T
+
+
+def _check_against_differences(w0, moments, t=5.0, *, q0=Q0, eps, tol):
+    args = tuple(jnp.asarray(a) for a in (q0, w0, moments, t))
+    ref = _central_differences(*args, eps)
+    for got, mode in zip(_jacobians(*args), ("fwd", "rev")):
+        assert np.all(np.isfinite(got)), mode
+        assert_close(got, ref, tol=tol, what=f"{mode} at omega0 = {w0}, moments = {moments}")
+
 
 DEGENERATE = {
     "spin about the largest axis": ([0.0, 0.0, 2.0], [1.0, 2.0, 3.0]),
@@ -121,9 +145,74 @@ def test_degenerate_states(case):
     q, w = _propagate(jnp.asarray(Q0), jnp.asarray(w0), jnp.asarray(moments), jnp.asarray(ts))
     assert_same_rotation(q, q_ref, tol=2e-11)
     assert_close(w, w_ref, tol=2e-11, what=case)
-    jac, jac_rev = _jacobians(jnp.asarray(w0), jnp.asarray(moments))
+    jac, jac_rev = _jacobians(jnp.asarray(Q0), jnp.asarray(w0), jnp.asarray(moments), jnp.asarray(5.0))
     assert np.all(np.isfinite(jac)) and np.all(np.isfinite(jac_rev))
     assert_close(jac, jac_rev, tol=1e-9 * max(1.0, float(np.abs(jac).max())), what="forward == reverse")
+
+
+@pytest.mark.parametrize("moments", ([1.0, 2.0, 3.0], [2.0, 2.5, 4.0]))
+def test_near_a_spin_about_the_middle_axis_against_dop853(moments):
+    """The (p, m) neighbourhood of the Dzhanibekov spin: w0 = (p, 1, +-p) for p = 1e-3 ..
+    1e-14 (1 - m ~ p^2), to t = 10, against DOP853. The amplitudes enter the precession
+    integral as (sn, cn) from the rates; as angles near pi/2 they lost eps / cn0, which
+    gave 3e-2 rad at p = 1e-14 (now 9e-14 rad in float64)."""
+    ps = 10.0 ** -np.array([3.0, 6.0, 9.0, 12.0, 14.0])
+    w0 = np.array([[p, 1.0, sign * p] for p in ps for sign in (1.0, -1.0)])
+    ts = np.array([0.0, 2.5, 5.0, 10.0])
+    q, w = _propagate(jnp.asarray(Q0), jnp.asarray(w0)[:, None], jnp.asarray(moments), jnp.asarray(ts))
+    for k in range(len(w0)):
+        q_ref, w_ref = dop853_reference(Q0, w0[k], moments, ts)
+        # float32: the precession integrals are ~30 here and carry ~30 ulps (measured 1.2e-5).
+        assert_same_rotation(q[k], q_ref, tol=2e-11 if X64 else 5e-5)
+        assert_close(w[k], w_ref, tol=2e-11 if X64 else 5e-5, what=f"w, w0 = {w0[k]}")
+
+
+def _rk4_state(w0, moments, t, n=20000):
+    """Independent reference for derivatives: classical RK4 on the raw 7-state ODE in JAX
+    (dt = t / n; halving dt changes its Jacobians by < 2e-11)."""
+    def rhs(y):
+        q, w = y[:4], y[4:]
+        qd = 0.5 * jnp.concatenate([-(q[1:] @ w)[None], q[0] * w + jnp.cross(q[1:], w)])
+        return jnp.concatenate([qd, jnp.cross(moments * w, w) / moments])
+
+    h = t / n
+
+    def step(y, _):
+        k1 = rhs(y)
+        k2 = rhs(y + h / 2 * k1)
+        k3 = rhs(y + h / 2 * k2)
+        return y + h / 6 * (k1 + 2 * k2 + 2 * k3 + rhs(y + h * k3)), None
+
+    y, _ = jax.lax.scan(step, jnp.concatenate([jnp.asarray(Q0), w0]), None, length=n)
+    return y
+
+
+@pytest.mark.skipif(not X64, reason="finite differences need float64")
+def test_derivatives_at_equal_moments_near_the_middle_axis_and_on_the_separatrix():
+    """Where the derivative was silently wrong or NaN, against independent references.
+
+    * Axisymmetric bodies, d/d moments: the gap |I_b - I_c| was formed with abs, whose
+      derivative 0 at the tie dropped the first-order effect (error 0.43 before).
+    * w0 = (1e-6, 1, 1e-6), I = (1, 2, 3), d/d omega0 to t = 10 (entries up to 280, the
+      saddle's growth): against the RK4 reference (error 1.3e-4 before, 9e-10 now).
+    * On the separatrix (I = (3, 4, 6), w0 = (2, 0.5, 1)) and 1e-9 either side: NaN before
+      (through simulate: tests/test_integrators.py::test_forward_mode_through_simulate).
+
+    All at t = 5 from Q0, through the jitted Jacobians the degenerate-state test compiles.
+    """
+    for moments in ([1.0, 2.0, 2.0], [3.0, 4.0, 4.0]):
+        _check_against_differences([0.4, -0.3, 0.9], moments, eps=1e-6, tol=1e-8)
+    for shift in (0.0, 1e-9, -1e-9):
+        _check_against_differences([2.0, 0.5 + shift, 1.0], [3.0, 4.0, 6.0], eps=1e-6, tol=3e-8)  # measured 5e-9
+    # Near the saddle the parametrisation (u0 ~ log(1/p), d u0 / d omega0 ~ 1/p) costs
+    # about eps / p relative in the derivative (2e-10 at p = 1e-6; measured 1e-11 with XLA's default
+    # code and 2.3e-10 with LLVM optimisation off), hence the bound 2e-9.
+    w0, moments = jnp.asarray([1e-6, 1.0, 1e-6]), jnp.asarray([1.0, 2.0, 3.0])
+    ref = jax.jit(jax.jacfwd(_rk4_state))(w0, moments, 5.0)
+    fwd, rev = _jacobians(jnp.asarray(Q0), w0, moments, jnp.asarray(5.0))
+    scale = float(np.abs(ref).max())
+    for got, mode in ((fwd[:, 4:7], "fwd"), (rev[:, 4:7], "rev")):
+        assert_close(got / scale, ref / scale, tol=2e-9, what=f"near the middle axis ({mode})")
 
 
 @given(seeds)
@@ -187,7 +276,6 @@ def test_dzhanibekov_flip_interval():
     assert abs(period / (2 * flip) - 1) < (1e-11 if X64 else 1e-5)
 
 
-_flat_state = jax.jit(lambda *a: jnp.concatenate(jq.euler_poinsot(*a)))
 
 
 @pytest.mark.skipif(not X64, reason="finite differences need float64")
@@ -197,9 +285,7 @@ def test_gradients_match_finite_differences():
     (1, 2, 2.5): diag(1, 2, 3) sits on the triangle inequality, which a finite-difference
     step in the moments would cross)."""
     for w0 in ([1.0, 0.1, 0.5], [0.0, 0.0, 2.0], [0.0, 0.0, 0.0]):
-        args = (jnp.asarray(Q0), jnp.asarray(w0), jnp.asarray([1.0, 2.0, 2.5]), jnp.asarray(3.0))
-        check_grads(_flat_state, args, order=1, modes=("fwd", "rev"),
-                    atol=1e-6, rtol=1e-6, eps=1e-6)
+        _check_against_differences(w0, [1.0, 2.0, 2.5], 3.0, eps=1e-6, tol=1e-6)
 
 
 def test_jit_vmap_nested_batching_and_dtype():
