@@ -19,17 +19,17 @@ from jax import Array
 def as_float_array(x: Any, name: str) -> Array:
     """Convert ``x`` to a JAX array and require a floating dtype.
 
-    Python floats and lists of real numbers are accepted and become JAX's default float
-    dtype. Integer, boolean and complex arrays, and lists of booleans or complex numbers,
+    Python floats and lists of real numbers are accepted and become *weakly typed* arrays
+    of JAX's default float dtype, as Python scalars are: combined with a float32 array
+    they take float32 (``rotate(q_float32, [1.0, 0.0, 0.0])`` is float32, not float64).
+    Integer, boolean and complex arrays, and lists of booleans or complex numbers,
     raise ``TypeError``: silently promoting integer quaternions hides bugs (and the
     gradients are meaningless), and a complex value would lose its imaginary part.
     """
     if isinstance(x, (float, int)) and not isinstance(x, bool):
         return jnp.asarray(float(x))
     if isinstance(x, (list, tuple)):
-        x = jnp.asarray(x)
-        if jnp.issubdtype(x.dtype, jnp.integer):  # integer literals in a list, e.g. [1, 0, 0, 0]
-            x = x.astype(jnp.asarray(0.0).dtype)
+        x = _weak_list(x, name)
     arr = jnp.asarray(x)
     if not jnp.issubdtype(arr.dtype, jnp.floating):
         raise TypeError(
@@ -37,6 +37,42 @@ def as_float_array(x: Any, name: str) -> Array:
             f"(float16, bfloat16, float32 or float64), got {arr.dtype}"
         )
     return arr
+
+
+def _plain_numbers(x: Any) -> bool:
+    """Whether ``x`` is a (nested) list or tuple of Python numbers only."""
+    if isinstance(x, (list, tuple)):
+        return all(_plain_numbers(e) for e in x)
+    return isinstance(x, (bool, int, float, complex))
+
+
+def _weak_list(x: list | tuple, name: str) -> Array:
+    """A (nested) list of real numbers as a weakly typed array of the default float dtype.
+
+    JAX makes only Python scalars weak; a list becomes a strong float64 array under x64 and
+    promotes everything it meets. Stacking weak scalars keeps the list weak. Lists longer
+    than 4096 numbers become ordinary (strong) arrays: at that size an array is the
+    expected input, and stacking would be slow.
+    """
+    if not _plain_numbers(x):  # arrays or tracers inside: their own dtypes decide, as in JAX
+        arr = jnp.asarray(x)
+        return arr.astype(jnp.asarray(0.0).dtype) if jnp.issubdtype(arr.dtype, jnp.integer) else arr
+    values = np.asarray(x)
+    if values.dtype == bool or np.issubdtype(values.dtype, np.complexfloating) or values.dtype == object:
+        return jnp.asarray(x)  # rejected with a clear message by the caller
+    values = values.astype(np.float64)
+    if values.size == 0 or values.size > 4096:
+        return jnp.asarray(values, dtype=jnp.asarray(0.0).dtype)
+    flat = jnp.stack([jnp.asarray(float(v)) for v in values.ravel()])
+    return flat.reshape(values.shape)
+
+
+def working_dtype(dtype) -> Any:
+    """The dtype to compute in: float32 for the half-precision dtypes (float16, bfloat16),
+    whose 3 significant digits and small exponent range the elliptic functions, ``eigh``
+    and the spline's linear solve cannot work in (XLA has no half-precision ``eigh`` or
+    LU); the dtype itself otherwise. Results are cast back to the input dtype."""
+    return jnp.float32 if jnp.finfo(dtype).bits < 32 else dtype
 
 
 def _check_trailing(arr: Array, name: str, trailing: tuple[int, ...], what: str) -> Array:

@@ -127,6 +127,32 @@ def safe_hypot(x: Array, y: Array) -> Array:
     return safe_sqrt(x * x + y * y)
 
 
+def rescaled(q: Array) -> Array:
+    """``q`` times the power of two ``2^-E`` where ``2^E <= max_i |q_i| < 2^(E+1)``.
+
+    The scaling is exact (only the exponent changes), so a scale-invariant function of
+    the result equals the function of ``q`` and has the same derivative (its gradient is
+    orthogonal to ``q``); but no component squared can underflow or overflow, which in
+    float32 turned ``angle(1e-25 (1, 1, 0, 0))`` into 0 instead of pi/2. A zero ``q``
+    stays zero, a NaN stays NaN.
+
+    The factor is built from the exponent bits (``2^-E`` has biased exponent
+    ``2 bias - (E + bias)``) because ``frexp``/``ldexp`` doubled the time of
+    ``to_rotvec`` at 10^6 (3.6 -> 7.5 ms in float32 on the reference 2-core machine); this
+    costs 3.6 -> 4.6 ms (``angle``: 1.8 -> 3.3 ms), the price of exact answers at any scale.
+    """
+    big = jnp.abs(q[..., 0])
+    for i in range(1, q.shape[-1]):
+        big = jnp.maximum(big, jnp.abs(q[..., i]))
+    info = jnp.finfo(q.dtype)
+    nmant, bias = int(info.nmant), int(info.maxexp) - 1
+    itype = {2: jnp.int16, 4: jnp.int32, 8: jnp.int64}[info.bits // 8]
+    mask = ((1 << (info.bits - 1 - nmant)) - 1) << nmant
+    bits = jax.lax.bitcast_convert_type(jax.lax.stop_gradient(big), itype)
+    scale = jax.lax.bitcast_convert_type(((2 * bias) << nmant) - (bits & mask), q.dtype)
+    return q * scale[..., None]
+
+
 def const_like(values, like: Array) -> Array:
     """A constant vector broadcast to ``like``'s batch shape (explicitly, for strict rank promotion)."""
     return jnp.broadcast_to(jnp.asarray(values, dtype=like.dtype), like.shape[:-1] + (len(values),))

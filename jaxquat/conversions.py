@@ -197,7 +197,7 @@ def to_rotvec(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3"]:
     At exactly 180 degrees ``phi u`` and ``-phi u`` are the same rotation; the
     sign follows :func:`jaxquat.canonicalize`.
     """
-    return _to_rotvec(_checks.quat(q))
+    return _to_rotvec(_safe.rescaled(_checks.quat(q)))
 
 
 def _from_rotvec(r: Array) -> Array:
@@ -226,7 +226,7 @@ def to_axis_angle(q: Float[Array, "*batch 4"]) -> tuple[Float[Array, "*batch 3"]
     ``phi = 0``, with zero gradient for ``u`` and a zero subgradient for ``phi``
     (whose true derivative there does not exist: ``phi = 2|v|`` is a cone).
     """
-    q = _canonicalize(_checks.quat(q))
+    q = _canonicalize(_safe.rescaled(_checks.quat(q)))
     w = q[..., 0]
     v = q[..., 1:]
     n = _safe.safe_norm(v)
@@ -262,7 +262,7 @@ def to_mrp(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3"]:
     ``|q| + w`` instead of ``1 + w`` makes it scale-invariant. Smooth everywhere
     except the 180-degree hemisphere switch.
     """
-    q = _canonicalize(_checks.quat(q))
+    q = _canonicalize(_safe.rescaled(_checks.quat(q)))
     w = q[..., 0]
     n = jnp.sqrt(_safe.norm_sq(q))
     return q[..., 1:] / (n + w)[..., None]

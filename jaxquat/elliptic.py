@@ -150,8 +150,10 @@ def ellipj(u: Float[Array, "*batch"], m: Float[Array, "*batch"]) -> tuple[Array,
     Euler-Poinsot motion: Landau and Lifshitz, Mechanics, section 37.
     """
     u, m = _broadcast((u, m), ("u", "m"))
+    dtype = u.dtype
+    u, m = (x.astype(_checks.working_dtype(dtype)) for x in (u, m))
     out = _jacobi(u, m, 1 - m)
-    return tuple(jnp.where(m > 1, jnp.nan, x) for x in out)  # as scipy: NaN outside m <= 1
+    return tuple(jnp.where(m > 1, jnp.nan, x).astype(dtype) for x in out)  # as scipy: NaN outside m <= 1
 
 
 def ellipk(m: Float[Array, "*batch"]) -> Array:
@@ -163,7 +165,9 @@ def ellipk(m: Float[Array, "*batch"]) -> Array:
     :func:`scipy.special.ellipk`.
     """
     m = _checks.as_float_array(m, "m")
-    return jnp.where(m > 1, jnp.nan, _quarter_period(m, 1 - m))
+    dtype = m.dtype
+    m = m.astype(_checks.working_dtype(dtype))
+    return jnp.where(m > 1, jnp.nan, _quarter_period(m, 1 - m)).astype(dtype)
 
 
 def _duplicate(x: Array, y: Array, z: Array) -> tuple[Array, Array, Array, Array]:
@@ -229,7 +233,8 @@ def elliprf(x: Float[Array, "*batch"], y: Float[Array, "*batch"], z: Float[Array
     ``x, y, z >= 0`` with at most one zero. ``F(phi | m) = sin(phi) R_F(cos^2 phi,
     1 - m sin^2 phi, 1)`` for ``|phi| <= pi/2``. As :func:`scipy.special.elliprf`.
     """
-    return _rf(*_broadcast((x, y, z), ("x", "y", "z")))
+    args = _broadcast((x, y, z), ("x", "y", "z"))
+    return _rf(*(a.astype(_checks.working_dtype(a.dtype)) for a in args)).astype(args[0].dtype)
 
 
 def elliprj(
@@ -242,7 +247,8 @@ def elliprj(
     R_J(cos^2 phi, 1 - m sin^2 phi, 1, 1 - n sin^2 phi)``. As
     :func:`scipy.special.elliprj` for ``p > 0``.
     """
-    return _rj(*_broadcast((x, y, z, p), ("x", "y", "z", "p")))
+    args = _broadcast((x, y, z, p), ("x", "y", "z", "p"))
+    return _rj(*(a.astype(_checks.working_dtype(a.dtype)) for a in args)).astype(args[0].dtype)
 
 
 def _reduced_amplitude(sn: Array, cn: Array) -> tuple[Array, Array, Array]:

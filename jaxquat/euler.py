@@ -80,7 +80,7 @@ def to_euler(q: Float[Array, "*batch 4"], seq: str) -> Float[Array, "*batch 3"]:
     subgradient of ``hypot`` at the origin). Everywhere else gradients are exact.
     """
     seq = _checks.euler_seq(seq)
-    q = _checks.quat(q)
+    q = _safe.rescaled(_checks.quat(q))
     extrinsic = seq.islower()
     i, j, k = (_AXIS[c] for c in (seq.lower() if extrinsic else seq.lower()[::-1]))
     symmetric = i == k

@@ -28,7 +28,7 @@ def angle(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch"]:
     cone ``2|v|``); there the gradient returned is the zero subgradient. At 180
     degrees (``w = 0``) the gradient with respect to ``w`` is 0 (a maximum).
     """
-    return _angle(_checks.quat(q))
+    return _angle(_safe.rescaled(_checks.quat(q)))
 
 
 def angle_between(p: Float[Array, "*batch 4"], q: Float[Array, "*batch 4"]) -> Float[Array, "*batch"]:

@@ -103,7 +103,7 @@ def _default_rtol(dtype) -> float:
 
 def _moments(inertia: Array) -> Array:
     """Principal moments (ascending) of the symmetric part, in float32 or wider (no half-precision eigh)."""
-    work = inertia if jnp.finfo(inertia.dtype).bits >= 32 else inertia.astype(jnp.float32)
+    work = inertia.astype(_checks.working_dtype(inertia.dtype))
     return jnp.linalg.eigvalsh(0.5 * (work + jnp.swapaxes(work, -1, -2)))
 
 

@@ -63,6 +63,7 @@ def minus(q1: Float[Array, "*batch 4"], q0: Float[Array, "*batch 4"], frame: str
     q1 = _checks.quat(q1, "q1")
     q0 = _checks.quat(q0, "q0")
     q1, q0 = _checks.broadcast_batch([q1, q0], ["q1", "q0"], [1, 1])
+    q1, q0 = _safe.rescaled(q1), _safe.rescaled(q0)
     rel = _multiply(_conjugate(q0), q1) if frame == "body" else _multiply(q1, _conjugate(q0))
     return _to_rotvec(rel)
 

@@ -135,15 +135,17 @@ class RotationSpline:
         times, quats = _checks.broadcast_batch([times, quats], ["times", "quats"], [1, 2])
         if not isinstance(times, jax.core.Tracer) and not np.all(np.diff(np.asarray(times)) > 0):
             raise ValueError(f"argument 'times' must be strictly increasing, got {np.asarray(times).tolist()}")
-        self.times = times
-        self.keys, self.coeffs = _fit(times, quats, max_iter, tol)
+        self.times = times  # the input dtype; keys and coefficients in the working dtype
+        work = _checks.working_dtype(times.dtype)
+        self.keys, self.coeffs = _fit(times.astype(work), quats.astype(work), max_iter, tol)
 
     def __call__(self, t: Float[Array, "*shape"] | float, order: int = 0) -> Array:
         """Attitude (``order=0``, ``(..., 4)``), body angular velocity (1) or acceleration (2) at ``t``."""
         if order not in (0, 1, 2):
             raise ValueError(f"argument 'order' must be 0, 1 or 2, got {order!r}")
-        t = _checks.scalar_like(t, "t").astype(self.times.dtype)
-        return _evaluate(self.times, self.keys, self.coeffs, t, order)
+        dtype, work = self.times.dtype, self.coeffs.dtype
+        t = _checks.scalar_like(t, "t").astype(dtype).astype(work)
+        return _evaluate(self.times.astype(work), self.keys, self.coeffs, t, order).astype(dtype)
 
 
 # The construction and the evaluation are jitted functions (traced once per shape and dtype):

@@ -73,10 +73,11 @@ def principal_axes(inertia: Float[Array, "*batch 3 3"]) -> tuple[Float[Array, "*
     moments there instead. Chou (1992) eq. (C1) is the inverse map.
     """
     inertia = _validated(inertia)
-    moments, vectors = jnp.linalg.eigh(inertia)
+    dtype = inertia.dtype
+    moments, vectors = jnp.linalg.eigh(inertia.astype(_checks.working_dtype(dtype)))
     det = jnp.linalg.det(vectors)
     vectors = vectors.at[..., :, 2].multiply(jnp.sign(det)[..., None])
-    return moments, _from_matrix_shepperd(vectors)
+    return moments.astype(dtype), _from_matrix_shepperd(vectors).astype(dtype)
 
 
 def _roles(moments: Array, omega: Array):
@@ -269,7 +270,10 @@ def euler_poinsot(
     moments = _validated_moments(moments)
     t = _checks.scalar_like(t, "t")
     q0, omega0, moments, t = _checks.broadcast_batch([q0, omega0, moments, t], ["q0", "omega0", "moments", "t"], [1, 1, 1, 0])
-    return _propagate(q0, omega0, moments, t)
+    dtype = q0.dtype
+    work = _checks.working_dtype(dtype)
+    q, w = _propagate(*(x.astype(work) for x in (q0, omega0, moments, t)))
+    return q.astype(dtype), w.astype(dtype)
 
 
 def polhode_period(omega0: Float[Array, "*batch 3"], moments: Float[Array, "*batch 3"]) -> Float[Array, "*batch"]:
@@ -283,7 +287,9 @@ def polhode_period(omega0: Float[Array, "*batch 3"], moments: Float[Array, "*bat
     omega0 = _checks.vec3(omega0, "omega0")
     moments = _validated_moments(moments)
     omega0, moments = _checks.broadcast_batch([omega0, moments], ["omega0", "moments"], [1, 1])
+    dtype = omega0.dtype
+    omega0, moments = omega0.astype(_checks.working_dtype(dtype)), moments.astype(_checks.working_dtype(dtype))
     general, safe_w, safe_i, roles = _safe_state(moments, omega0)
     *_, m, mc, lam = _parameters(safe_i, safe_w, *roles)
     period = 4 * _quarter_period(m, mc) / lam
-    return jnp.where(general & (mc > 0), period, jnp.inf)
+    return jnp.where(general & (mc > 0), period, jnp.inf).astype(dtype)

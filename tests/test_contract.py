@@ -412,6 +412,36 @@ def test_python_lists_are_accepted():
     assert_close(jq.rotate([0.0, 1.0, 0.0, 0.0], [0.0, 1.0, 0.0]), [0.0, -1.0, 0.0], tol=1e-6)
 
 
+def test_python_lists_take_the_dtype_of_the_arrays_they_meet():
+    """A list is weakly typed, as a Python scalar is: beside a float32 array the result is
+    float32 (it was float64 whenever x64 was on); alone it is JAX's default float."""
+    q32 = jnp.asarray([0.6, 0.8, 0.0, 0.0], jnp.float32)
+    assert jq.rotate(q32, [1.0, 0.0, 0.0]).dtype == jnp.float32
+    assert jq.multiply([1.0, 0.0, 0.0, 0.0], q32).dtype == jnp.float32
+    assert jq.slerp(q32, [0.0, 1.0, 0.0, 0.0], 0.5).dtype == jnp.float32
+    assert jq.rotate(q32.astype(jnp.float16), [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]).dtype == jnp.float16
+    assert jq.to_matrix([1, 0, 0, 0]).dtype == jnp.asarray(0.0).dtype
+    assert_close(jq.rotate(q32, [0.0, 1.0, 0.0]), [0.0, -0.28, 0.96], tol=1e-6)
+
+
+@pytest.mark.parametrize("exponent", [-30, -25, 20, 30] + ([-300, 300] if X64 else []))
+def test_scale_invariant_functions_at_extreme_scales(exponent):
+    """90 degrees about x at scale 10^exponent: the squares of the components under- or
+    overflow, but the functions documented as scale-invariant scale by a power of two first
+    (in float32 angle gave 0 at 1e-25 and to_rotvec gave 0 at 1e20)."""
+    q = jnp.asarray([1.0, 1.0, 0.0, 0.0], DTYPE) * jnp.asarray(10.0**exponent, DTYPE)
+    tol = 1e-12 if X64 else 1e-6
+    half_pi = np.pi / 2
+    assert_close(jq.angle(q), half_pi, tol=tol, what="angle")
+    assert_close(jq.to_rotvec(q), [half_pi, 0.0, 0.0], tol=tol, what="to_rotvec")
+    axis, angle = jq.to_axis_angle(q)
+    assert_close(axis, [1.0, 0.0, 0.0], tol=tol, what="axis")
+    assert_close(angle, half_pi, tol=tol, what="to_axis_angle")
+    assert_close(jq.to_mrp(q), [np.tan(np.pi / 8), 0.0, 0.0], tol=tol, what="to_mrp")
+    assert_close(jq.to_euler(q, "xyz"), [half_pi, 0.0, 0.0], tol=tol, what="to_euler")
+    assert_close(jq.minus(q, jnp.asarray([1.0, 0.0, 0.0, 0.0], DTYPE) * q[0]), [half_pi, 0.0, 0.0], tol=tol, what="minus")
+
+
 def test_every_public_name_is_in_the_contract():
     # identity/random: tests/test_algebra.py, test_geometry.py; the inertia checks:
     # tests/test_inertia.py (they return booleans / raise); the torque factories:

@@ -127,6 +127,21 @@ def test_vmap_over_key_sets_and_jit():
     assert_close(jax.jit(lambda s, t: s(t, 2))(spline, ts), spline(ts, 2), tol=1e-12 if X64 else 1e-4)
 
 
+@pytest.mark.skipif(X64, reason="half precision does not depend on the x64 flag: checked once, in the float32 pass")
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16])
+def test_half_precision_builds_in_float32_and_returns_the_input_dtype(dtype):
+    """(NotImplementedError before: XLA has no half-precision LU for the rate solve.)"""
+    times, q = _keys(5, 4)
+    ts = np.linspace(times[0], times[-1], 9)
+    for order in (0, 1, 2):
+        out = jq.RotationSpline(jnp.asarray(times, dtype), jnp.asarray(q, dtype))(jnp.asarray(ts, dtype), order)
+        ref = jq.RotationSpline(jnp.asarray(times, jnp.float32), jnp.asarray(q, jnp.float32))(jnp.asarray(ts, jnp.float32), order)
+        assert out.dtype == dtype
+        out, ref = np.asarray(out, np.float32), np.asarray(ref, np.float32)
+        assert np.all(np.isfinite(out))
+        assert_close(out, ref, tol=0.1 * max(1.0, float(np.abs(ref).max())), what=f"order {order} {dtype}")
+
+
 def test_bad_input():
     with pytest.raises(ValueError, match="argument 'times' must be strictly increasing"):
         jq.RotationSpline(jnp.asarray([0.0, 1.0, 1.0]), jq.identity(3))

@@ -215,6 +215,33 @@ def test_derivatives_at_equal_moments_near_the_middle_axis_and_on_the_separatrix
         assert_close(got / scale, ref / scale, tol=2e-9, what=f"near the middle axis ({mode})")
 
 
+@pytest.mark.skipif(X64, reason="half precision does not depend on the x64 flag: checked once, in the float32 pass")
+@pytest.mark.parametrize("dtype", [jnp.float16, jnp.bfloat16])
+def test_half_precision_computes_in_float32_and_returns_the_input_dtype(dtype):
+    """euler_poinsot, polhode_period, principal_axes and the elliptic functions in float16 and
+    bfloat16 (non-finite or NotImplementedError before): the input dtype out, and the float32
+    answer rounded to it."""
+    w0, moments, t = np.array([0.3, 1.0, 0.2]), np.array([1.0, 2.0, 3.0]), np.array([0.5, 3.0])
+    inertia = np.array([[2.0, 0.1, 0.0], [0.1, 1.5, 0.0], [0.0, 0.0, 1.0]])
+    calls = {
+        "euler_poinsot": lambda d: jq.euler_poinsot(jnp.asarray(Q0, d), jnp.asarray(w0, d), jnp.asarray(moments, d), jnp.asarray(t, d)),
+        "polhode_period": lambda d: jq.polhode_period(jnp.asarray(w0, d), jnp.asarray(moments, d)),
+        "principal_axes": lambda d: jq.principal_axes(jnp.asarray(inertia, d)),
+        "ellipj": lambda d: jq.ellipj(jnp.asarray(t, d), jnp.asarray([0.5, 0.99], d)),
+        "ellipk": lambda d: jq.ellipk(jnp.asarray([0.5, 0.99], d)),
+    }
+    for name, call in calls.items():
+        outs, refs = jax.tree_util.tree_leaves(call(dtype)), jax.tree_util.tree_leaves(call(jnp.float32))
+        for o, r in zip(outs, refs):
+            assert o.dtype == dtype, f"{name}: {o.dtype}"
+            o, r = np.asarray(o, np.float32), np.asarray(r, np.float32)
+            assert np.all(np.isfinite(o)), name
+            if name == "principal_axes" and o.shape[-1] == 4:  # q and -q are one rotation
+                o = o * np.sign(np.sum(o * r))
+            # the inputs themselves are rounded to 3 significant digits: 0.05 relative, amplified a little
+            assert_close(o, r, tol=0.05 * max(1.0, float(np.abs(r).max())), what=f"{name} {dtype}")
+
+
 @given(seeds)
 def test_conserved_quantities(seed):
     """|q| = 1, energy, body |L| and spatial L = q (I w) q* conserved at random times up to 1000."""
