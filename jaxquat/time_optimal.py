@@ -297,6 +297,7 @@ def minimum_time_reorientation(
     tol: float = 1e-6,
     refine: int = 20,
     progress: bool = False,
+    throw: bool = True,
 ) -> Reorientation:
     """Shortest time ``T`` and bounded body torque taking ``(q0, omega0)`` to ``(qf, omegaf)``.
 
@@ -310,7 +311,10 @@ def minimum_time_reorientation(
     others random with ``seed``), or ``init``: a previous :class:`Reorientation` to
     warm-start from (e.g. to refine ``intervals``); then ``refine`` Newton-KKT steps
     per start. Returns the shortest converged start with violation ``<= tol`` (or
-    the shortest feasible one, or, if none, the least violating one). ``progress=True``
+    the shortest feasible one). If no start meets ``tol``, raises ``RuntimeError``
+    naming the least violation (as optimistix does with ``throw=True``: an infeasible
+    answer is not returned as a plausible time); with ``throw=False`` the least
+    violating start is returned instead, for inspection. ``progress=True``
     shows a tqdm bar with the time and violation. Runs eagerly (the inner solves
     are jitted); use float64 (``jax_enable_x64``) for tight terminal conditions.
     The discrete optimum approaches the continuous one from above as ``intervals``
@@ -392,6 +396,14 @@ def minimum_time_reorientation(
     converged = kkt_res <= _CONVERGED
     feasible = (viol_ref <= tol) & (converged if np.any(converged & (viol_ref <= tol)) else True)
     best_time = np.where(feasible, t_ref_all, np.inf)
+    if throw and not np.any(feasible):
+        raise RuntimeError(
+            f"minimum_time_reorientation: no start met the terminal conditions to tol = {tol:g} "
+            f"(least violation {float(np.min(viol_ref)):.3g}, time {float(t_ref_all[np.argmin(viol_ref)]):.6g}). "
+            "Try more outer/inner iterations, starts or intervals, and check that the torque bound can "
+            "reach omegaf from omega0 (stopping |omega0| = 100 with a bound of 1 takes about 100 time units). "
+            "Pass throw=False to get the least violating start."
+        )
     k = int(np.argmin(best_time)) if np.any(feasible) else int(np.argmin(viol_ref))
     xk = {key: jnp.asarray(v[k]) for key, v in x_ref.items()}
     multipliers = jnp.asarray(mults[k])
