@@ -29,7 +29,7 @@ def as_float_array(x: Any, name: str) -> Array:
     if isinstance(x, (float, int)) and not isinstance(x, bool):
         return jnp.asarray(float(x))
     if isinstance(x, (list, tuple)):
-        x = _weak_list(x, name)
+        x = _weak_list(x)
     arr = jnp.asarray(x)
     if not jnp.issubdtype(arr.dtype, jnp.floating):
         raise TypeError(
@@ -46,7 +46,7 @@ def _plain_numbers(x: Any) -> bool:
     return isinstance(x, (bool, int, float, complex))
 
 
-def _weak_list(x: list | tuple, name: str) -> Array:
+def _weak_list(x: list | tuple) -> Array:
     """A (nested) list of real numbers as a weakly typed array of the default float dtype.
 
     JAX makes only Python scalars weak; a list becomes a strong float64 array under x64 and
