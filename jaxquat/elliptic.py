@@ -135,9 +135,12 @@ def _quarter_period(m: Array, mc: Array) -> Array:
 
 
 def _broadcast(args, names):
+    """The arguments validated and broadcast, in the working dtype (float32 for half
+    precision), and the dtype the results are cast back to."""
     arrays = [_checks.as_float_array(a, n) for a, n in zip(args, names)]
     dtype = jnp.result_type(*arrays)
-    return jnp.broadcast_arrays(*[a.astype(dtype) for a in arrays])
+    work = _checks.working_dtype(dtype)
+    return jnp.broadcast_arrays(*[a.astype(work) for a in arrays]), dtype
 
 
 def ellipj(u: Float[Array, "*batch"], m: Float[Array, "*batch"]) -> tuple[Array, Array, Array, Array]:
@@ -149,9 +152,7 @@ def ellipj(u: Float[Array, "*batch"], m: Float[Array, "*batch"]) -> tuple[Array,
     as :func:`scipy.special.ellipj`. ``u`` and ``m`` broadcast together.
     Euler-Poinsot motion: Landau and Lifshitz, Mechanics, section 37.
     """
-    u, m = _broadcast((u, m), ("u", "m"))
-    dtype = u.dtype
-    u, m = (x.astype(_checks.working_dtype(dtype)) for x in (u, m))
+    (u, m), dtype = _broadcast((u, m), ("u", "m"))
     out = _jacobi(u, m, 1 - m)
     return tuple(jnp.where(m > 1, jnp.nan, x).astype(dtype) for x in out)  # as scipy: NaN outside m <= 1
 
@@ -164,9 +165,7 @@ def ellipk(m: Float[Array, "*batch"]) -> Array:
     (where ``K`` is complex) and ``m = inf`` give NaN, as scipy does. Same convention as
     :func:`scipy.special.ellipk`.
     """
-    m = _checks.as_float_array(m, "m")
-    dtype = m.dtype
-    m = m.astype(_checks.working_dtype(dtype))
+    (m,), dtype = _broadcast((m,), ("m",))
     return jnp.where(m > 1, jnp.nan, _quarter_period(m, 1 - m)).astype(dtype)
 
 
@@ -233,8 +232,8 @@ def elliprf(x: Float[Array, "*batch"], y: Float[Array, "*batch"], z: Float[Array
     ``x, y, z >= 0`` with at most one zero. ``F(phi | m) = sin(phi) R_F(cos^2 phi,
     1 - m sin^2 phi, 1)`` for ``|phi| <= pi/2``. As :func:`scipy.special.elliprf`.
     """
-    args = _broadcast((x, y, z), ("x", "y", "z"))
-    return _rf(*(a.astype(_checks.working_dtype(a.dtype)) for a in args)).astype(args[0].dtype)
+    args, dtype = _broadcast((x, y, z), ("x", "y", "z"))
+    return _rf(*args).astype(dtype)
 
 
 def elliprj(
@@ -247,8 +246,8 @@ def elliprj(
     R_J(cos^2 phi, 1 - m sin^2 phi, 1, 1 - n sin^2 phi)``. As
     :func:`scipy.special.elliprj` for ``p > 0``.
     """
-    args = _broadcast((x, y, z, p), ("x", "y", "z", "p"))
-    return _rj(*(a.astype(_checks.working_dtype(a.dtype)) for a in args)).astype(args[0].dtype)
+    args, dtype = _broadcast((x, y, z, p), ("x", "y", "z", "p"))
+    return _rj(*args).astype(dtype)
 
 
 def _reduced_amplitude(sn: Array, cn: Array) -> tuple[Array, Array, Array]:

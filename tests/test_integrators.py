@@ -382,9 +382,12 @@ def test_forward_mode_through_simulate():
     with pytest.raises(TypeError, match=r"adjoint=diffrax\.ForwardMode\(\)"):
         jax.jacfwd(forced(diffrax.RecursiveCheckpointAdjoint()))(w0)
     h = 1e-5 if X64 else 1e-2
-    closed_form = jax.jit(lambda w, inertia: jq.simulate(q0, w, inertia, ts).q[-1])
-    jac_closed_form = jax.jit(jax.jacfwd(lambda w, inertia: jq.simulate(q0, w, inertia, ts).q[-1]))
-    grad_closed_form = jax.jit(jax.grad(lambda w, inertia: jq.simulate(q0, w, inertia, ts).q[-1, 1]))
+    def final(w, inertia):
+        return jq.simulate(q0, w, inertia, ts).q[-1]
+
+    closed_form = jax.jit(final)
+    jac_closed_form = jax.jit(jax.jacfwd(final))
+    grad_closed_form = jax.jit(jax.grad(lambda w, inertia: final(w, inertia)[1]))
     # The second state is on the separatrix (|L|^2 = 2 E I_mid), where both modes gave NaN.
     for w, inertia_ in ((w0, inertia), (jnp.asarray([2.0, 0.5, 1.0], DTYPE), jnp.diag(jnp.asarray([3.0, 4.0, 6.0], DTYPE)))):
         fd = jnp.stack([(closed_form(w + h * e, inertia_) - closed_form(w - h * e, inertia_)) / (2 * h)
