@@ -5,7 +5,7 @@ every 0.1 s for 20 s, each measurement rotated by Gaussian noise of a given size
 axis). Torque-free motion does not change if the inertia is scaled, so the tensor is
 recovered to scale (normalised to trace 3). Unknowns: the initial attitude (a tangent
 correction to the first measurement), the initial body angular velocity, the principal
-moments and the principal axes (a rotation vector): 12 parameters, fitted with optax's
+moments and the principal axes (a rotation vector): 12 parameters, fitted with optimistix's
 L-BFGS on the sum of squared attitude residuals over growing time windows, with gradients through the exact
 torque-free solution (jaxquat.euler_poinsot). Prints the relative error of the recovered
 tensor for each noise level and saves examples/out/inertia_identification.png.
@@ -53,6 +53,7 @@ def tensor(moments, axes):
     return r @ jnp.diag(moments) @ r.T
 
 
+@jax.jit  # one compiled program; op-by-op (eager) evaluation of the closed form took 9 s
 def measurements(noise, seed):
     moments, q_axes = jq.principal_axes(TRUE_INERTIA)
     axes = jq.to_rotvec(q_axes)

@@ -5,7 +5,7 @@ axis, starting and ending at rest. The optimum is the eigenaxis rotation with a 
 angle profile (u linear in t), cost 12 theta^2 / T^3. Here the torque history is a
 continuous piecewise-linear function of time (N nodes per axis, free), the body is
 simulated with jaxquat.simulate (RKMK4, fixed steps) and the six terminal conditions
-(attitude, rate) enter an augmented Lagrangian minimised with optax's L-BFGS; gradients
+(attitude, rate) enter an augmented Lagrangian minimised with optimistix's L-BFGS; gradients
 flow through the simulation. Prints the cost against the analytic optimum and the
 terminal errors, and saves examples/out/min_energy_slew.png.
 

@@ -88,7 +88,7 @@ is the eigenaxis rotation with a cubic angle profile, cost `12 theta^2 / T^3`.
 
 Here the torque is constant on `N` intervals, the body is simulated with
 `jq.simulate` (RKMK4), and the terminal conditions enter a quadratic penalty
-with multiplier updates (augmented Lagrangian), minimised by optax's L-BFGS.
+with multiplier updates (augmented Lagrangian), minimised by optimistix's L-BFGS.
 Gradients flow through the simulation."""),
 ("code", """import jax
 jax.config.update("jax_enable_x64", True)
@@ -115,7 +115,7 @@ def energy(u):
     return T / N * jnp.sum(u * u)"""),
 ("md", "Augmented Lagrangian: a few outer multiplier updates around a jitted L-BFGS inner loop."),
 ("code", """import sys
-sys.path.insert(0, "..")  # examples/_lbfgs.py: optax L-BFGS iterations in one lax.scan
+sys.path.insert(0, "..")  # examples/_lbfgs.py: optimistix L-BFGS steps in one lax.scan
 from _lbfgs import minimize
 
 @jax.jit
