@@ -264,9 +264,17 @@ def _axis_rotation(q: Array, m: Array, inv_inertia: Array, axis: int, tau) -> tu
 
 
 class RigidBodySplit(_LieSolver):
-    """Symmetric splitting for ``RigidBody`` terms (principal axes): order 2, fixed steps."""
+    """Symmetric splitting for ``RigidBody`` terms (principal axes): order 2, fixed steps.
+
+    Torque-free, each step ends on the initial ``|m|`` (``m = I w``) and, below float64, on
+    the initial energy (:func:`_onto_invariants`; float32 drift over 10^5 steps 7.7e-3 ->
+    2.4e-7, see ``docs/integrators.md``)."""
 
     weights: ClassVar[tuple[float, ...]] = (1.0,)
+    # Whether the torque-free step keeps the energy exactly (then its rounding is projected away);
+    # this splitting keeps |m| exactly but the energy only within O(h^2), so in float64 only
+    # |m| is restored (projecting the energy would cost the exact spatial momentum).
+    exact_energy: ClassVar[bool] = False
 
     def order(self, terms):
         return 2
@@ -300,6 +308,15 @@ class RigidBodySplit(_LieSolver):
             w = jax.lax.fori_loop(0, self.kick_iterations + 1, sweep, w_free)
         return q, w
 
+    def init(self, terms, t0, t1, y0, args):
+        """Torque-free, the solver state is the initial invariants ``(|m|^2, 2 E)`` (``m = I w``),
+        onto which every step projects (see :func:`_onto_invariants`); with a torque, none."""
+        super().init(terms, t0, t1, y0, args)
+        if self._body(terms).torque is not None:
+            return None
+        moments = jnp.diagonal(self._body(terms).inertia, axis1=-2, axis2=-1)
+        return _invariants(moments, y0[1])
+
     def _body(self, terms) -> RigidBody:
         inner = terms
         while not hasattr(inner, "vector_field") and hasattr(inner, "term"):
@@ -323,6 +340,11 @@ class RigidBodySplit(_LieSolver):
 
         (q1, w1), _ = jax.lax.scan(sub, (q, w), (weights, offsets))
         q1 = _unit(q1)  # as the RKMK solvers: float32 rounding of |q| must not walk over 1e5 steps
+        if solver_state is not None:
+            # Below float64, rounding drift (5e-4 after 10^5 float32 steps) dwarfs the splitting's
+            # bounded O(h^2) energy error (7e-7 there), so the energy is restored too.
+            energy = self.exact_energy or jnp.finfo(w1.dtype).eps > 1e-10
+            w1 = _onto_invariants(jnp.diagonal(rb.inertia, axis1=-2, axis2=-1), w1, solver_state, energy)
         # A run-time check (under jit the inertia's values are unknown at trace time).
         off_diagonal = jnp.any(rb.inertia * jnp.broadcast_to(1 - jnp.eye(3, dtype=rb.inertia.dtype), rb.inertia.shape) != 0)
         q1 = eqx.error_if(
@@ -332,6 +354,43 @@ class RigidBodySplit(_LieSolver):
         )
         y1 = (q1, w1)
         return y1, None, dict(y0=y0, y1=y1), solver_state, _RESULTS.successful
+
+
+def _invariants(moments: Array, w: Array) -> tuple[Array, Array]:
+    """``(|m|^2, 2 E)`` of the body momentum ``m = I w`` (principal axes)."""
+    m = moments * w
+    return _safe.norm_sq(m), _safe.dot(m, w)
+
+
+def _onto_invariants(moments: Array, w: Array, invariants, energy: bool = True) -> Array:
+    """``w`` moved the least distance in ``m = I w`` onto ``|m|^2 = C``, ``m . w = 2 E``.
+
+    Torque-free, both are invariants of the exact flow, and the splittings keep them up to
+    rounding per step; but rounding does not average out: near a steady spin the step's
+    rotation angle is the same every step, so is its rounding, and the invariants drift
+    linearly (float32, ``h = 0.01``, ``I = (1, 2, 3)``, ``w0 = (0.05, 0.02, 1)``: 7.7e-3
+    relative after 10^5 steps). Projecting onto the initial values (a projection method,
+    Hairer, Lubich and Wanner, Geometric Numerical Integration, IV.4; the order is kept) leaves
+    an error that does not accumulate. One Gauss-Newton step with the constraint gradients
+    ``(2 m, 2 m / I)``; where they are nearly parallel (``m`` within about 2 degrees of a
+    principal axis, or a spherical body) the two constraints are nearly one and only the norm
+    is restored, by scaling, which then also restores the energy to ``O(angle^2)``.
+    """
+    c0, e0 = invariants
+    m = moments * w
+    g1, g2 = 2 * m, 2 * w  # gradients of |m|^2 and of m . w = sum m^2 / I, in m
+    r1, r2 = _safe.norm_sq(m) - c0, _safe.dot(m, w) - e0
+    a, b, c = _safe.norm_sq(g1), _safe.dot(g1, g2), _safe.norm_sq(g2)
+    det = a * c - b * b
+    general = (det > 1e-3 * a * c) & energy
+    det = jnp.where(general, det, 1.0)
+    x1 = (c * r1 - b * r2) / det  # (J J^T)^-1 r
+    x2 = (a * r2 - b * r1) / det
+    m_gn = m - x1[..., None] * g1 - x2[..., None] * g2
+    n2 = _safe.norm_sq(m)
+    moving = n2 > 0  # at rest nothing moves (and the square root stays away from 0)
+    scale = jnp.sqrt(jnp.where(moving, c0 / jnp.where(moving, n2, 1.0), 1.0))
+    return jnp.where(general[..., None], m_gn, m * scale[..., None]) / moments
 
 
 _CBRT2 = 2.0 ** (1.0 / 3.0)
@@ -355,10 +414,13 @@ class EulerPoinsotSplit(RigidBodySplit):
     ``m += h/2 M``, exact Euler-Poinsot motion for ``h``, ``m += h/2 M`` (Strang):
     order 2 when a torque acts, and *exact for any step* when none does (one step
     may span the whole run). Conserves ``|q|`` and, torque-free, the spatial
-    momentum and the energy to rounding. Cost per step: one closed-form
+    momentum and the energy to rounding: each step ends on the initial ``|m|`` and energy
+    (:func:`_onto_invariants`), so rounding does not accumulate. Cost per step: one closed-form
     evaluation (AGM, Landen and Carlson loops, about 20 vector-field costs) plus
     2 torque evaluations. Needs principal axes, as :class:`RigidBodySplit`.
     """
+
+    exact_energy: ClassVar[bool] = True
 
     def _free(self, q, w, moments, h):
         return _propagate(q, w, moments, jnp.broadcast_to(h, q.shape[:-1]).astype(q.dtype))
