@@ -149,6 +149,26 @@ def _reference_time(inertia, bound, theta, axis, w0, wf) -> float:
     return 2.0 * math.sqrt(theta / accel) + float(np.linalg.norm(np.asarray(wf) - np.asarray(w0))) / accel
 
 
+_MAX_STEP_ANGLE = 0.5  # rad the body may turn in one RKMK4 step of the reference profile
+
+
+def _check_resolution(t_ref, theta, w0, wf, intervals: int, substeps: int) -> None:
+    """Raise before any work when the grid cannot resolve the motion: the body would turn by
+    more than ``_MAX_STEP_ANGLE`` in one integration step at the reference time (the larger of
+    the boundary rates and the eigenaxis profile's peak rate ``2 theta / T_ref``). Such a
+    problem used to run its whole budget (about 40 s at 10 intervals) and return NaN or fail."""
+    rate = max(float(np.linalg.norm(np.asarray(w0))), float(np.linalg.norm(np.asarray(wf))), 2 * theta / t_ref)
+    h = t_ref / (intervals * substeps)
+    if rate * h > _MAX_STEP_ANGLE:
+        need = int(np.ceil(rate * t_ref / _MAX_STEP_ANGLE))
+        raise ValueError(
+            f"minimum_time_reorientation: the grid cannot resolve this motion: at rate {rate:.3g} rad/s the body "
+            f"turns {rate * h:.3g} rad per integration step (reference time {t_ref:.4g}, intervals * substeps = "
+            f"{intervals * substeps}); need intervals * substeps >= {need} (a step of at most {_MAX_STEP_ANGLE} rad), "
+            "or boundary rates ('omega0', 'omegaf') the torque bound can change within a shorter time"
+        )
+
+
 def _initial_controls(key, starts, intervals, bound, axis, init):
     """Torque parameters ``p`` ``(starts, intervals, 3)``."""
     keys = jax.random.split(key, 2)
@@ -314,7 +334,12 @@ def minimum_time_reorientation(
     the shortest feasible one). If no start meets ``tol``, raises ``RuntimeError``
     naming the least violation (as optimistix does with ``throw=True``: an infeasible
     answer is not returned as a plausible time); with ``throw=False`` the least
-    violating start is returned instead, for inspection. ``progress=True``
+    violating start is returned instead, for inspection. Before any solve, a grid too
+    coarse for the motion raises ``ValueError`` (the body would turn more than 0.5 rad per
+    integration step at the reference time, e.g. ``omega0 = (100, 0, 0)`` with unit torque;
+    the message gives the ``intervals * substeps`` needed). With no feasible start, the outer
+    loop stops early once the least violation stalls (falls by less than 10 % in two outer
+    iterations while above ``100 tol``). ``progress=True``
     shows a tqdm bar with the time and violation. Runs eagerly (the inner solves
     are jitted); use float64 (``jax_enable_x64``) for tight terminal conditions.
     The discrete optimum approaches the continuous one from above as ``intervals``
@@ -350,6 +375,7 @@ def minimum_time_reorientation(
     inertia, bound, w0, wf = (jnp.asarray(x, dtype) for x in (inertia, bound, w0, wf))
     theta, axis = _eigenaxis(q0, qf)
     t_ref = float(init.time) if init is not None else _reference_time(inertia, bound, theta, axis, w0, wf)
+    _check_resolution(t_ref, theta, w0, wf, intervals, substeps)
     p = _initial_controls(jax.random.PRNGKey(seed), starts, intervals, bound, axis, init)
 
     problem = _Problem(inertia, bound, q0, w0, qf, wf, jnp.asarray(t_ref, dtype))
@@ -361,6 +387,7 @@ def minimum_time_reorientation(
     best_time = np.full(starts, np.inf)
     best_x = jax.tree_util.tree_map(np.asarray, x)
     least = np.full(starts, np.inf)
+    least_seen = [np.inf]
     history = []
     bar = None
     if progress:
@@ -383,6 +410,12 @@ def minimum_time_reorientation(
         best_time = np.where(better & (viol <= tol), times, best_time)
         k = int(np.argmin(np.where(best_time < np.inf, best_time, np.inf))) if np.any(best_time < np.inf) else int(np.argmin(viol))
         history.append((float(times[k]), float(viol[k])))
+        # Stalled far from feasibility (the least violation over the starts fell by less than
+        # 10 % in two outer iterations and is above 100 tol): stop and let the Newton phase try.
+        if len(history) >= 3 and not np.any(best_time < np.inf) and least.min() > 100 * tol \
+                and least.min() > 0.9 * least_seen[-2]:
+            break
+        least_seen.append(float(least.min()))
         if bar is not None:
             bar.set_postfix(time=f"{times[k]:.6f}", violation=f"{viol[k]:.1e}", feasible=int(np.sum(best_time < np.inf)))
             bar.update()
