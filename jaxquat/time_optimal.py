@@ -157,7 +157,8 @@ def _check_resolution(t_ref, theta, w0, wf, intervals: int, substeps: int) -> No
     more than ``_MAX_STEP_ANGLE`` in one integration step at the reference time (the larger of
     the boundary rates and the eigenaxis profile's peak rate ``2 theta / T_ref``). Such a
     problem used to run its whole budget (about 40 s at 10 intervals) and return NaN or fail."""
-    rate = max(float(np.linalg.norm(np.asarray(w0))), float(np.linalg.norm(np.asarray(wf))), 2 * theta / t_ref)
+    peak = 2 * theta / t_ref if t_ref > 0 else 0.0  # t_ref = 0: already there, at rest
+    rate = max(float(np.linalg.norm(np.asarray(w0))), float(np.linalg.norm(np.asarray(wf))), peak)
     h = t_ref / (intervals * substeps)
     if rate * h > _MAX_STEP_ANGLE:
         need = int(np.ceil(rate * t_ref / _MAX_STEP_ANGLE))
