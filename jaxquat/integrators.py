@@ -312,10 +312,10 @@ class RigidBodySplit(_LieSolver):
         """Torque-free, the solver state is the initial invariants ``(|m|^2, 2 E)`` (``m = I w``),
         onto which every step projects (see :func:`_onto_invariants`); with a torque, none."""
         super().init(terms, t0, t1, y0, args)
-        if self._body(terms).torque is not None:
+        rb = self._body(terms)
+        if rb.torque is not None:
             return None
-        moments = jnp.diagonal(self._body(terms).inertia, axis1=-2, axis2=-1)
-        return _invariants(moments, y0[1])
+        return _invariants(jnp.diagonal(rb.inertia, axis1=-2, axis2=-1), y0[1])
 
     def _body(self, terms) -> RigidBody:
         inner = terms
@@ -378,8 +378,9 @@ def _onto_invariants(moments: Array, w: Array, invariants, energy: bool = True) 
     """
     c0, e0 = invariants
     m = moments * w
+    n2 = _safe.norm_sq(m)
     g1, g2 = 2 * m, 2 * w  # gradients of |m|^2 and of m . w = sum m^2 / I, in m
-    r1, r2 = _safe.norm_sq(m) - c0, _safe.dot(m, w) - e0
+    r1, r2 = n2 - c0, _safe.dot(m, w) - e0
     a, b, c = _safe.norm_sq(g1), _safe.dot(g1, g2), _safe.norm_sq(g2)
     det = a * c - b * b
     general = (det > 1e-3 * a * c) & energy
@@ -387,7 +388,6 @@ def _onto_invariants(moments: Array, w: Array, invariants, energy: bool = True) 
     x1 = (c * r1 - b * r2) / det  # (J J^T)^-1 r
     x2 = (a * r2 - b * r1) / det
     m_gn = m - x1[..., None] * g1 - x2[..., None] * g2
-    n2 = _safe.norm_sq(m)
     moving = n2 > 0  # at rest nothing moves (and the square root stays away from 0)
     scale = jnp.sqrt(jnp.where(moving, c0 / jnp.where(moving, n2, 1.0), 1.0))
     return jnp.where(general[..., None], m_gn, m * scale[..., None]) / moments

@@ -293,7 +293,8 @@ def polhode_period(omega0: Float[Array, "*batch 3"], moments: Float[Array, "*bat
     moments = _validated_moments(moments)
     omega0, moments = _checks.broadcast_batch([omega0, moments], ["omega0", "moments"], [1, 1])
     dtype = omega0.dtype
-    omega0, moments = omega0.astype(_checks.working_dtype(dtype)), moments.astype(_checks.working_dtype(dtype))
+    work = _checks.working_dtype(dtype)
+    omega0, moments = omega0.astype(work), moments.astype(work)
     general, safe_w, safe_i, roles = _safe_state(moments, omega0)
     *_, m, mc, lam = _parameters(safe_i, safe_w, *roles)
     period = 4 * _quarter_period(m, mc) / lam
