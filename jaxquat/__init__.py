@@ -9,8 +9,9 @@ Each module's ``__all__`` is its public surface; the package re-exports them all
 """
 
 from . import (
-    algebra, conversions, dynamics, elliptic, euler, geometry, inertia, integrators, interpolate, kinematics, lie,
-    rigid_body, simulate as _simulate_module, skew, spline, tangent, time_optimal, torque_free, torques,
+    algebra, conversions, dynamics, elliptic, euler, fixed_step, geometry, inertia, interpolate, kinematics, lie,
+    lie_solvers, models, rigid_body, simulate as _simulate_module, skew, spline, splitting, tangent, time_optimal, torque_free,
+    torques,
 )
 from .algebra import *  # noqa: F401,F403
 from .conversions import *  # noqa: F401,F403
@@ -19,14 +20,17 @@ from .elliptic import *  # noqa: F401,F403
 from .euler import *  # noqa: F401,F403
 from .geometry import *  # noqa: F401,F403
 from .inertia import *  # noqa: F401,F403
-from .integrators import *  # noqa: F401,F403
+from .fixed_step import *  # noqa: F401,F403
 from .interpolate import *  # noqa: F401,F403
 from .kinematics import *  # noqa: F401,F403
 from .lie import *  # noqa: F401,F403
+from .lie_solvers import *  # noqa: F401,F403
+from .models import *  # noqa: F401,F403
 from .rigid_body import *  # noqa: F401,F403
 from .simulate import *  # noqa: F401,F403
 from .skew import *  # noqa: F401,F403
 from .spline import *  # noqa: F401,F403
+from .splitting import *  # noqa: F401,F403
 from .tangent import *  # noqa: F401,F403
 from .time_optimal import *  # noqa: F401,F403
 from .torque_free import *  # noqa: F401,F403
@@ -51,7 +55,10 @@ __all__ = [
     *elliptic.__all__,
     *torque_free.__all__,
     *rigid_body.__all__,
-    *integrators.__all__,
+    *models.__all__,
+    *lie_solvers.__all__,
+    *splitting.__all__,
+    *fixed_step.__all__,
     *_simulate_module.__all__,
     *time_optimal.__all__,
 ]

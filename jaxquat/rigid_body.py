@@ -8,7 +8,7 @@ is differentiable through every diffrax adjoint) whose call
     dw_b/dt = I^-1 (M_b(t, q, w_b, args) - w_b x I w_b)   (Euler, [S] eq. (19))
 
 so ``diffrax.ODETerm(RigidBody(I, torque))`` drops into ``diffeqsolve`` with any
-diffrax solver, or with the Lie-group solvers of :mod:`jaxquat.integrators`.
+diffrax solver, or with the Lie-group solvers of :mod:`jaxquat.lie_solvers` and :mod:`jaxquat.splitting`.
 ``EulerParameterBody`` is the same body on ``y = (q, qdot)`` with Chou's
 closed-form ``qddot`` (:func:`jaxquat.euler_parameter_acceleration`).
 """

@@ -16,9 +16,11 @@ from . import _checks
 from .algebra import _conjugate, _multiply
 from .conversions import _to_matrix
 from .inertia import _validated
-from .integrators import RKMK45, EulerPoinsotSplit, LieEuler, RigidBodySplit, _lie_euler_step, _RKMK, _rkmk_step
+from .fixed_step import solve_fixed_steps
+from .lie_solvers import RKMK45, AbstractLieSolver, BodyRateTerm
 from .rigid_body import RigidBody
 from .skew import _matvec
+from .splitting import AbstractSplitting, EulerPoinsotSplit
 from .torque_free import _propagate, principal_axes
 
 __all__ = ["Simulation", "simulate"]
@@ -84,11 +86,13 @@ def simulate(
     In float32 give ``rtol``/``atol`` above float32 rounding (e.g. 1e-5): the defaults
     (1e-8) are float64 tolerances.
 
-    Fast path: ``RKMK4`` and ``LieEuler`` with concrete ``ts`` and ``dt0``, no
-    ``adjoint`` or ``progress``, and ``max_steps`` (if given) not exceeded, run as a ``lax.scan`` over the steps
-    instead of through ``diffeqsolve`` (1.5x the throughput at 10^5 bodies, see
-    ``docs/benchmarks.md``). Every interval ``[ts[i], ts[i+1]]`` is split into the same
-    number ``ceil(max_i |ts[i+1] - ts[i]| / |dt0|)`` of equal steps, so no step exceeds
+    Fast path: every fixed-step jaxquat solver (``LieEuler``, ``RKMK4``, the splittings)
+    with concrete ``ts`` and ``dt0``, no ``adjoint`` or ``progress``, and ``max_steps`` (if
+    given) not exceeded, runs on :func:`jaxquat.solve_fixed_steps` (a ``lax.scan`` over the
+    steps through the solver's own ``init``/``step``) instead of ``diffeqsolve`` (1.5x the
+    throughput at 10^5 bodies, see ``docs/benchmarks.md``). Every interval
+    ``[ts[i], ts[i+1]]`` is split into the same number
+    ``ceil(max_i |ts[i+1] - ts[i]| / |dt0|)`` of equal steps, so no step exceeds
     ``dt0`` and every saved state is a step end, not an interpolant; each step is
     rematerialised in the backward pass (``jax.checkpoint``), so reverse mode stores
     one state per step. ``solution`` is then ``None``.
@@ -109,10 +113,10 @@ def simulate(
         solver = EulerPoinsotSplit() if torque is None else RKMK45()
     adaptive = _has_error_estimate(solver)
     # Torque-free, the exact flow needs no step control: step straight from one saved time to the next.
-    exact = isinstance(solver, EulerPoinsotSplit) and torque is None and dt0 is None
+    exact = getattr(solver, "exact_torque_free", False) and torque is None and dt0 is None
     if not (adaptive or exact) and dt0 is None:
         raise ValueError(f"argument 'dt0' is required with the fixed-step solver {type(solver).__name__}")
-    principal = isinstance(solver, RigidBodySplit) and not _is_concrete_diagonal(inertia)
+    principal = isinstance(solver, AbstractSplitting) and not _is_concrete_diagonal(inertia)
     if max_steps is None:
         # numpy, not jnp: inside jit even a concrete ts would be traced by ts[-1] - ts[0]
         span = None if ts_host is None else abs(float(ts_host[-1] - ts_host[0]))
@@ -129,18 +133,30 @@ def simulate(
     if exact and adjoint is None and not progress:
         return _exact_simulate(q0, omega0, inertia if shared_inertia is None else shared_inertia, ts, principal)
     substeps = None if (adjoint is not None or progress) else _scan_substeps(solver, ts_host, dt0, max_steps)
-    if substeps is not None:
-        inertia = inertia if shared_inertia is None else shared_inertia
-        return _scan_simulate(q0, omega0, inertia, ts, torque, torque_frame, args, solver, substeps)
     adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
     meter = diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter()
 
     def solve(q, w, inertia_1, torque_fn):
-        """One diffeqsolve of a body, or of a whole batch stacked on the leading axis."""
+        """One solve of a body, or of a whole batch stacked on the leading axis."""
         if principal:  # the splittings work in principal axes: rotate there and back
             moments, q_axes, r, q, w = _to_principal(inertia_1, q, w)
             inertia_1 = moments[..., None] * jnp.broadcast_to(jnp.eye(3, dtype=moments.dtype), moments.shape + (3,))
-        term = diffrax.ODETerm(RigidBody(inertia_1, torque_fn, torque_frame))
+        if isinstance(solver, AbstractSplitting):  # the splittings read the RigidBody itself
+            term = diffrax.ODETerm(RigidBody(inertia_1, torque_fn, torque_frame))
+        else:  # on the scan path in the Lie-algebra form (the body rate on q: no conversion)
+            field = _Field(inertia_1, torque if per_body_field else torque_fn, torque_frame, per_body_field,
+                           rates=substeps is not None)
+            term = (diffrax.ODETerm if substeps is None else BodyRateTerm)(field)
+        if substeps is not None:  # the fixed-step scan driver: the time axis first, as diffrax's
+            qs, ws = solve_fixed_steps(solver, term, ts, (q, w), args, substeps=substeps)
+            sol = None
+        else:
+            qs, ws, sol = _diffeqsolve(term, q, w)
+        if principal:  # diffrax puts the time axis first
+            qs, ws = _from_principal(qs, ws, q_axes[None], r[None])
+        return qs, ws, sol
+
+    def _diffeqsolve(term, q, w):
         try:
             sol = diffrax.diffeqsolve(
                 term, solver, ts[0], ts[-1], dt0, (q, w), args=args, saveat=diffrax.SaveAt(ts=ts),
@@ -153,12 +169,10 @@ def simulate(
                 "forward-mode autodiff (jax.jvp, jax.jacfwd) through simulate's diffeqsolve path needs "
                 "adjoint=diffrax.ForwardMode(); the default RecursiveCheckpointAdjoint supports reverse mode only"
             ) from err
-        qs, ws = sol.ys
-        if principal:  # diffrax puts the time axis first
-            qs, ws = _from_principal(qs, ws, q_axes[None], r[None])
-        return qs, ws, sol
+        return *sol.ys, sol
 
     batch = q0.shape[:-1]
+    per_body_field = bool(batch) and not adaptive and not isinstance(solver, AbstractSplitting)
     if not batch:
         return Simulation(*solve(q0, omega0, inertia, torque))
     n = len(ts)
@@ -167,9 +181,34 @@ def simulate(
         qs, ws, sol = jax.vmap(lambda q, w, i: solve(q, w, i, torque))(*flat)
     else:  # fixed steps: one solve of the stacked batch (diffrax's per-step work is shared)
         per_body = None if torque is None else jax.vmap(torque, in_axes=(None, 0, 0, None))
+        if shared_inertia is not None and per_body_field:  # one (3, 3) tensor, not carried per body
+            flat[2] = shared_inertia
         qs, ws, sol = solve(*flat, per_body)
         qs, ws = jnp.swapaxes(qs, 0, 1), jnp.swapaxes(ws, 0, 1)
     return Simulation(qs.reshape(batch + (n, 4)), ws.reshape(batch + (n, 3)), sol)
+
+
+class _Field(eqx.Module):
+    """The rigid body's vector field, ``(qdot, wdot)``, or ``(w, wdot)`` with ``rates`` (for
+    :class:`jaxquat.BodyRateTerm`). ``stacked``: of stacked bodies ``(q (n, 4), w (n, 3))``,
+    one body's field vmapped, with a shared ``(3, 3)`` tensor or one per body ``(n, 3, 3)``.
+    A module, so the inertia is a leaf every diffrax adjoint differentiates."""
+
+    inertia: Array
+    torque: Callable | None
+    torque_frame: str = eqx.field(static=True)
+    stacked: bool = eqx.field(static=True)
+    rates: bool = eqx.field(static=True)
+
+    def _one(self, t, q, w, tensor, args):
+        body = RigidBody(tensor, self.torque, self.torque_frame)
+        return (w, body.angular_acceleration(t, q, w, args)) if self.rates else body(t, (q, w), args)
+
+    def __call__(self, t, y, args):
+        if not self.stacked:
+            return self._one(t, *y, self.inertia, args)
+        axis = None if self.inertia.ndim == 2 else 0
+        return jax.vmap(self._one, in_axes=(None, 0, 0, axis, None))(t, *y, self.inertia, args)
 
 
 def _exact_simulate(q0, omega0, inertia, ts, principal: bool) -> Simulation:
@@ -233,65 +272,15 @@ def _is_concrete_diagonal(inertia) -> bool:
 
 def _has_error_estimate(solver) -> bool:
     """Whether a solver returns an error estimate (so a PID controller can adapt its step)."""
-    if isinstance(solver, _RKMK):
-        return len(solver.tableau[3]) > 0
     return isinstance(solver, diffrax.AbstractAdaptiveSolver)
 
 
 def _scan_substeps(solver, ts_host, dt0, max_steps) -> int | None:
     """Steps per interval of ``ts`` (its values ``ts_host``, None if traced) for the scan path,
-    or None where diffrax must run."""
-    fixed = isinstance(solver, LieEuler) or (isinstance(solver, _RKMK) and not _has_error_estimate(solver))
+    or None where diffrax must run (adaptive solvers, solvers from outside jaxquat)."""
+    fixed = isinstance(solver, (AbstractLieSolver, AbstractSplitting)) and not _has_error_estimate(solver)
     if not fixed or dt0 is None or ts_host is None or isinstance(dt0, jax.core.Tracer):
         return None
     widest = float(np.max(np.abs(np.diff(ts_host))))
     substeps = max(1, math.ceil(widest / abs(float(dt0)) * (1 - 1e-12)))
     return None if max_steps is not None and substeps * (len(ts_host) - 1) > max_steps else substeps
-
-
-def _scan_simulate(q0, omega0, inertia, ts, torque, torque_frame, args, solver, substeps) -> Simulation:
-    """The fixed-step solvers as nested ``lax.scan``s: intervals of ``ts`` outside, equal steps inside."""
-    batch = q0.shape[:-1]
-    flat = [x.reshape((-1,) + x.shape[len(batch):]) for x in (q0, omega0)] if batch else [q0, omega0]
-
-    def one_body(t, q, w, tensor):
-        return RigidBody(tensor, torque, torque_frame).angular_acceleration(t, q, w, args)
-
-    if not batch:
-        def vf(t, q, w):
-            return one_body(t, q, w, inertia)
-    elif inertia.ndim == 2:  # a tensor shared by the batch stays (3, 3), not carried per body
-        def vf(t, q, w):
-            return jax.vmap(one_body, in_axes=(None, 0, 0, None))(t, q, w, inertia)
-    else:
-        tensors = inertia.reshape((-1, 3, 3))
-
-        def vf(t, q, w):
-            return jax.vmap(one_body, in_axes=(None, 0, 0, 0))(t, q, w, tensors)
-
-    if isinstance(solver, LieEuler):
-        def step(t, h, q, w):
-            return _lie_euler_step(vf, t, h, q, w)
-    else:
-        def step(t, h, q, w):
-            return _rkmk_step(vf, t, h, q, w, solver.tableau, solver.order(None))[0]
-
-    @jax.checkpoint
-    def one_step(y, k, t0, h):
-        q, w = step(t0 + k * h, h, *y)
-        return q, w
-
-    def interval(y, t_pair):
-        t0, t1 = t_pair
-        h = (t1 - t0) / substeps
-        y, _ = jax.lax.scan(lambda y, k: (one_step(y, k, t0, h), None), y, jnp.arange(substeps, dtype=ts.dtype))
-        return y, y
-
-    _, (qs, ws) = jax.lax.scan(interval, (flat[0], flat[1]), (ts[:-1], ts[1:]))
-    qs = jnp.concatenate([flat[0][None], qs])
-    ws = jnp.concatenate([flat[1][None], ws])
-    if not batch:
-        return Simulation(qs, ws, None)
-    n = len(ts)
-    qs, ws = jnp.swapaxes(qs, 0, 1), jnp.swapaxes(ws, 0, 1)
-    return Simulation(qs.reshape(batch + (n, 4)), ws.reshape(batch + (n, 3)), None)

@@ -9,7 +9,7 @@ Transcription (direct, single shooting): time runs on ``s in [0, 1]`` with
 ``u_i = b_i sin(p_i)`` (smooth, bounded, and saturation is a stationary point at
 ``p = +-pi/2``, so bang-bang arcs are reachable without infinite parameters);
 ``T = T_ref exp(sigma)``. Each piece is integrated with ``substeps`` RKMK4 steps
-(:mod:`jaxquat.integrators`; ``|q| = 1`` to rounding). The six terminal conditions
+(:mod:`jaxquat.lie_solvers`; ``|q| = 1`` to rounding). The six terminal conditions
 ``c = (minus(q(T), qf), w(T) - wf)`` enter an augmented Lagrangian
 ``T + lambda . c + mu/2 |c|^2``, minimised over ``(sigma, p)`` by optax L-BFGS; the
 multipliers are updated after each inner solve and ``mu`` grows by 10 when ``|c|``
@@ -55,8 +55,9 @@ from jaxtyping import Float
 from . import _checks, _trig
 from .dynamics import _euler_body
 from .inertia import _validated
-from .integrators import RKMK4, _rkmk_step
+from .fixed_step import solve_fixed_steps
 from .lie import minus
+from .lie_solvers import RKMK4, BodyRateTerm
 
 __all__ = ["Reorientation", "minimum_time_reorientation"]
 
@@ -98,16 +99,20 @@ class Reorientation(NamedTuple):
 
 
 def _rollout(inertia, q0, w0, time, u, substeps: int, trajectory: bool):
-    """Integrate the piecewise-constant torque ``u`` ``(n, 3)`` over ``[0, time]``: one flat
-    scan of ``n * substeps`` RKMK4 steps (returns the final state and, if asked, every step's)."""
-    h = time / (u.shape[0] * substeps)
+    """Integrate the piecewise-constant torque ``u`` ``(n, 3)`` over ``[0, time]`` with
+    ``substeps`` RKMK4 steps per interval (:func:`jaxquat.solve_fixed_steps`); returns the
+    final state and, if asked, every step's (else None)."""
+    n = u.shape[0]
 
-    def step(state, u_k):
-        q, w = state
-        state, _ = _rkmk_step(lambda t, qi, wi: _euler_body(inertia, wi, u_k), 0.0, h, q, w, RKMK4.tableau, 4)
-        return state, state if trajectory else None
+    def field(t, y, u_k):  # the Lie-algebra form: the body rate itself on the quaternion leaf
+        return y[1], _euler_body(inertia, y[1], u_k)
 
-    return jax.lax.scan(step, (q0, w0), jnp.repeat(u, substeps, axis=0))
+    steps = n * substeps if trajectory else n  # a trajectory saves every step
+    ts = jnp.linspace(0.0, 1.0, steps + 1, dtype=w0.dtype) * time
+    controls = jnp.repeat(u, substeps, axis=0) if trajectory else u
+    qs, ws = solve_fixed_steps(RKMK4(), BodyRateTerm(field), ts, (q0, w0), substeps=1 if trajectory else substeps,
+                               interval_args=controls, checkpoint=False)
+    return (qs[-1], ws[-1]), ((qs[1:], ws[1:]) if trajectory else None)
 
 
 def _residual(q, w, qf, wf):
