@@ -138,6 +138,14 @@ def test_step_control_dense_output_and_saveat(name):
     assert int(sol.stats["num_accepted_steps"]) < 400
     dense = jax.vmap(sol.evaluate)(jnp.linspace(0.0, T_END, 37, dtype=DTYPE))
     assert float(jnp.abs(jq.norm(dense["q"]) - 1).max()) < (1e-12 if X64 else 1e-6)
+    # between steps: the quartic through the tableau's midpoint against DOP853 (float64 measured
+    # 4.4e-9 for RKMK45, 9.1e-10 for RKMKTsit5; the cubic Hermite gave 1.7e-7; float32 9e-5)
+    tq = np.linspace(0.0, T_END, 37)
+    ref = solve_ivp(_raw_rhs(THRUST), (0.0, T_END), _flat_y0(), method="DOP853", rtol=1e-13, atol=1e-13, t_eval=tq).y.T
+    q_ref = jnp.asarray(ref[:, 6:10] / np.linalg.norm(ref[:, 6:10], axis=1, keepdims=True), DTYPE)
+    dense_q = jax.vmap(sol.evaluate)(jnp.asarray(tq, DTYPE))
+    assert float(jnp.max(jq.angle_between(dense_q["q"], q_ref))) < (2e-8 if X64 else 1e-3)
+    assert float(np.abs(np.asarray(dense_q["r"]) - ref[:, :3]).max()) < (2e-8 if X64 else 1e-3)
     at_ts = jax.vmap(sol.evaluate)(ts)
     assert_close(at_ts["q"], sol.ys["q"][:-1], tol=1e-12 if X64 else 1e-5)
     assert_close(at_ts["r"], sol.ys["r"][:-1], tol=1e-12 if X64 else 1e-5)
