@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 BENCH_STAMP := $(VENV)/.installed-bench
 
-.PHONY: demo test test64 test32 bench clean
+.PHONY: demo test test64 test32 lint bench clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -40,6 +40,10 @@ test64: $(STAMP)
 
 test32: $(STAMP)
 	$(CACHED) JAX_ENABLE_X64=0 $(PYTEST)
+
+# ruff's lint rules of pyproject.toml ([tool.ruff]); .ci/run runs it before the tests.
+lint: $(STAMP)
+	$(PY) -m ruff check jaxquat tests examples benchmarks
 
 # Rewrites the generated sections of docs/benchmarks.md (the text around them stays).
 bench: $(BENCH_STAMP)

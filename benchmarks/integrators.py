@@ -156,7 +156,7 @@ def main():
         print("|---|---|---|---|---|")
         for name, solver, dt in [("RigidBodySplit", jq.RigidBodySplit(), 0.01), ("RigidBodySplit4", jq.RigidBodySplit4(), 0.01)]:
             ts = jnp.linspace(0.0, args.t_end, int(args.t_end) + 1)
-            sim = jax.jit(lambda s=solver, d=dt: jq.simulate(jq.identity(), jnp.asarray(W0), INERTIA, ts, solver=s, dt0=d))()
+            sim = jax.jit(lambda s=solver, d=dt, ts=ts: jq.simulate(jq.identity(), jnp.asarray(W0), INERTIA, ts, solver=s, dt0=d))()
             energy = np.asarray(jax.vmap(lambda q, w: jq.kinetic_energy(q, w, INERTIA))(sim.q, sim.omega))
             rel = np.abs(energy / energy[0] - 1)
             h = np.asarray(jq.rotate(sim.q, sim.omega @ INERTIA))

@@ -126,12 +126,12 @@ def test_gradients_in_state_and_parameters():
     for q in ([1.0, 0, 0, 0], [0.0, 0, 1, 0]):
         y = {"r": jnp.zeros(3), "v": jnp.asarray([0.1, 0.2, 0.3]), "q": jnp.asarray(q), "w": jnp.asarray([1.0, -2, .5])}
         args = {"thrust": jnp.asarray(14.0), "torque": jnp.asarray([0.01, 0.0, -0.02])}
-        check_grads(lambda y, m: jq.Quadrotor(m, jnp.diag(jnp.asarray([.02, .03, .05])), _thrust_torque)(0.0, y, args),
+        check_grads(lambda y, m, args=args: jq.Quadrotor(m, jnp.diag(jnp.asarray([.02, .03, .05])), _thrust_torque)(0.0, y, args),
                     (y, jnp.asarray(1.5)), order=1, modes=("fwd", "rev"))
         yc = {"q": jnp.asarray(q), "w": jnp.asarray([0.1, -0.2, 0.05]), "h": jnp.asarray([0.3, -0.1, 0.2, 0.4])}
         argc = {"u": jnp.asarray([0.01, 0.02, -0.01, 0.0]), "external": jnp.asarray([0.0, 0.001, 0.0])}
         # under jit: check_grads perturbs J off symmetry, which the eager value check would reject
-        check_grads(jax.jit(lambda y, j: jq.ReactionWheelSpacecraft(j, AXES, _wheels)(0.0, y, argc)),
+        check_grads(jax.jit(lambda y, j, argc=argc: jq.ReactionWheelSpacecraft(j, AXES, _wheels)(0.0, y, argc)),
                     (yc, jnp.asarray(J)), order=1, modes=("fwd", "rev"))
 
 

@@ -14,7 +14,7 @@ import scipy.special as sp
 from hypothesis import given
 
 import jaxquat as jq
-from helpers import DTYPE, NP_DTYPE, X64, assert_close, assert_same_rotation, dop853_reference, random_inertias, seeds
+from helpers import DTYPE, X64, assert_close, assert_same_rotation, dop853_reference, random_inertias, seeds
 
 TOL = 1e-11 if X64 else 2e-4
 Q0 = np.array([0.9, 0.1, -0.3, 0.2]) / np.linalg.norm([0.9, 0.1, -0.3, 0.2])
