@@ -55,7 +55,7 @@ from .conversions import _from_rotvec
 from .interpolate import _slerp
 
 __all__ = [
-    "SlerpInterpolation", "LocalPolynomialInterpolation", "BodyRateTerm", "AbstractLieSolver", "AbstractRKMK", "LieEuler", "RKMK4", "RKMK45", "RKMKTsit5", "RKMK8",
+    "AbstractLeafInterpolation", "SlerpInterpolation", "LocalPolynomialInterpolation", "BodyRateTerm", "AbstractLieSolver", "AbstractRKMK", "LieEuler", "RKMK4", "RKMK45", "RKMKTsit5", "RKMK8",
 ]
 
 _RESULTS = diffrax.RESULTS
@@ -133,7 +133,32 @@ def leaf_flags(mask: QuaternionMask | None, y, solver: str = "solver") -> tuple[
     return flags
 
 
-class SlerpInterpolation(diffrax.AbstractLocalInterpolation):
+class AbstractLeafInterpolation(diffrax.AbstractLocalInterpolation):
+    """Dense output over one step, leaf by leaf: a subclass gives :meth:`leaves_at`, the leaves
+    at the step fraction ``s = (t - t0)/(t1 - t0)``; this base gives diffrax's ``evaluate``
+    (the difference form for two times included) and the leaves' quaternion flags."""
+
+    # each subclass also declares ``mask: QuaternionMask | None`` (static, default None) as its
+    # last field; an abstract declaration here would order it before the subclass's own fields
+    t0: eqx.AbstractVar[Any]
+    t1: eqx.AbstractVar[Any]
+    y0: eqx.AbstractVar[Any]
+
+    @abc.abstractmethod
+    def leaves_at(self, s, flags: tuple[bool, ...], leaves0: list) -> list:
+        """The state's leaves at step fraction ``s``; ``leaves0`` are ``y0``'s."""
+
+    def evaluate(self, t0, t1=None, left: bool = True):
+        del left
+        if t1 is not None:
+            return jax.tree.map(lambda a, b: b - a, self.evaluate(t0), self.evaluate(t1))
+        leaves0, tree = jax.tree.flatten(self.y0)
+        flags = leaf_flags(self.mask, self.y0, type(self).__name__)
+        s = (t0 - self.t0) / jnp.where(self.t1 == self.t0, 1, self.t1 - self.t0)
+        return jax.tree.unflatten(tree, self.leaves_at(s, flags, leaves0))
+
+
+class SlerpInterpolation(AbstractLeafInterpolation):
     """Dense output between two steps: slerp on the quaternion leaves (stays unit), linear
     on the others. ``mask`` None: the rigid body's ``(q, w)``."""
 
@@ -143,22 +168,15 @@ class SlerpInterpolation(diffrax.AbstractLocalInterpolation):
     y1: Any
     mask: QuaternionMask | None = eqx.field(static=True, default=None)
 
-    def evaluate(self, t0, t1=None, left: bool = True):
-        del left
-        if t1 is not None:
-            return jax.tree.map(lambda a, b: b - a, self.evaluate(t0), self.evaluate(t1))
-        leaves0, tree = jax.tree.flatten(self.y0)
-        leaves1 = jax.tree.leaves(self.y1)
-        flags = leaf_flags(self.mask, self.y0, "SlerpInterpolation")
-        s = (t0 - self.t0) / jnp.where(self.t1 == self.t0, 1, self.t1 - self.t0)
+    def leaves_at(self, s, flags, leaves0):
         out = []
-        for flag, a, b in zip(flags, leaves0, leaves1):
+        for flag, a, b in zip(flags, leaves0, jax.tree.leaves(self.y1)):
             si = jnp.asarray(s, a.dtype)
             out.append(_slerp(a, b, jnp.broadcast_to(si, a.shape[:-1])) if flag else a + si * (b - a))
-        return jax.tree.unflatten(tree, out)
+        return out
 
 
-class LocalPolynomialInterpolation(diffrax.AbstractLocalInterpolation):
+class LocalPolynomialInterpolation(AbstractLeafInterpolation):
     """Dense output of the first-same-as-last RKMK solvers, in the step's local coordinates:
     ``q(s) = q0 Exp(p(s))`` on quaternion leaves (unit norm) and ``y0 + p(s)`` elsewhere, with
     ``p`` the quartic through ``p(0) = 0``, ``p(1/2) = mid`` and ``p(1) = incr`` with the end
@@ -185,13 +203,7 @@ class LocalPolynomialInterpolation(diffrax.AbstractLocalInterpolation):
     mid: Any = None
     mask: QuaternionMask | None = eqx.field(static=True, default=None)
 
-    def evaluate(self, t0, t1=None, left: bool = True):
-        del left
-        if t1 is not None:
-            return jax.tree.map(lambda a, b: b - a, self.evaluate(t0), self.evaluate(t1))
-        leaves0, tree = jax.tree.flatten(self.y0)
-        flags = leaf_flags(self.mask, self.y0, "LocalPolynomialInterpolation")
-        s = (t0 - self.t0) / jnp.where(self.t1 == self.t0, 1, self.t1 - self.t0)
+    def leaves_at(self, s, flags, leaves0):
         mids = [None] * len(leaves0) if self.mid is None else jax.tree.leaves(self.mid)
         out = []
         for flag, y, d, a, b, m in zip(flags, leaves0, *(jax.tree.leaves(x) for x in (self.incr, self.d0, self.d1)),
@@ -205,7 +217,7 @@ class LocalPolynomialInterpolation(diffrax.AbstractLocalInterpolation):
                 c2 = b - 4 * a - 5 * d + 16 * m
             p = (((c4 * si + c3) * si + c2) * si + a) * si
             out.append(unit(_multiply(y, _from_rotvec(p))) if flag else y + p)
-        return jax.tree.unflatten(tree, out)
+        return out
 
 
 class _Interpolation(eqx.Module):

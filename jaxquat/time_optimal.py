@@ -101,17 +101,18 @@ class Reorientation(NamedTuple):
 def _rollout(inertia, q0, w0, time, u, substeps: int, trajectory: bool):
     """Integrate the piecewise-constant torque ``u`` ``(n, 3)`` over ``[0, time]`` with
     ``substeps`` RKMK4 steps per interval (:func:`jaxquat.solve_fixed_steps`); returns the
-    final state and, if asked, every step's (else None)."""
-    n = u.shape[0]
+    final state and, if asked, every step's (else None).
+
+    One flat grid of ``n * substeps`` steps, each with its interval's torque, not ``n``
+    intervals of ``substeps`` steps: the derivatives of nested scans (the Newton-KKT Hessian
+    among them) compiled slower, the suite's solver fixture 58.5 s against 45.8 s."""
 
     def field(t, y, u_k):  # the Lie-algebra form: the body rate itself on the quaternion leaf
         return y[1], _euler_body(inertia, y[1], u_k)
 
-    steps = n * substeps if trajectory else n  # a trajectory saves every step
-    ts = jnp.linspace(0.0, 1.0, steps + 1, dtype=w0.dtype) * time
-    controls = jnp.repeat(u, substeps, axis=0) if trajectory else u
-    qs, ws = solve_fixed_steps(RKMK4(), BodyRateTerm(field), ts, (q0, w0), substeps=1 if trajectory else substeps,
-                               interval_args=controls, checkpoint=False)
+    ts = jnp.linspace(0.0, 1.0, u.shape[0] * substeps + 1, dtype=w0.dtype) * time
+    qs, ws = solve_fixed_steps(RKMK4(), BodyRateTerm(field), ts, (q0, w0), substeps=1,
+                               interval_args=jnp.repeat(u, substeps, axis=0), checkpoint=False)
     return (qs[-1], ws[-1]), ((qs[1:], ws[1:]) if trajectory else None)
 
 

@@ -473,7 +473,7 @@ def test_every_public_name_is_in_the_contract():
                  "AbstractSplitting",
                  # the Lie solvers on any model and the fixed-step driver: tests/test_lie_solvers.py
                  "AbstractLieSolver", "AbstractRKMK", "RKMKTsit5", "RKMK8", "BodyRateTerm", "solve_fixed_steps",
-                 "LocalPolynomialInterpolation",
+                 "LocalPolynomialInterpolation", "AbstractLeafInterpolation",
                  # vehicle models with quaternion leaves: tests/test_models.py
                  "Quadrotor", "ReactionWheelSpacecraft",
                  # elliptic functions and the exact torque-free propagator: tests/test_elliptic.py,
