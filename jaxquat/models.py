@@ -110,7 +110,9 @@ class ReactionWheelSpacecraft(eqx.Module):
     ``wheel_momentum_limit`` ``h_max`` stops a wheel's torque while ``|h_i| >= h_max`` and the
     torque would drive ``|h_i|`` further (a hard stop; the field is then discontinuous, so
     adaptive solvers locate the switch by shrinking the step). Each is a scalar or ``(n,)``;
-    None: no limit. Use ``quaternions=ReactionWheelSpacecraft.quaternions``.
+    None: no limit. Use ``quaternions=ReactionWheelSpacecraft.quaternions``. ``axes`` ``(n, 3)``
+    are normalised; a zero row raises when the values are known (an eager call) and gives NaN
+    under ``jit``, as elsewhere in the library.
     """
 
     inertia: Array
@@ -127,6 +129,9 @@ class ReactionWheelSpacecraft(eqx.Module):
         if axes.ndim != 2 or axes.shape[1] != 3 or axes.shape[0] < 1:
             raise ValueError(f"argument 'axes' must be the wheels' spin axes shaped (n, 3), n >= 1, got shape "
                              f"{tuple(axes.shape)}")
+        lengths = _checks.concrete(jnp.linalg.norm(axes, axis=-1))
+        if lengths is not None and not (lengths > 0).all():
+            raise ValueError(f"argument 'axes' must be nonzero spin axes, got rows of length {lengths.tolist()}")
         self.axes = axes / jnp.linalg.norm(axes, axis=-1, keepdims=True)
         self.control = _control(control)
         self.wheel_torque_limit = None if wheel_torque_limit is None else _limit(wheel_torque_limit,

@@ -140,6 +140,8 @@ def test_gradients_in_state_and_parameters():
     (lambda: jq.Quadrotor(1.0, np.eye(2), _thrust_torque), ValueError, "'inertia'.*3, 3"),
     (lambda: jq.Quadrotor(1.0, np.eye(3), "hover"), TypeError, "'control'"),
     (lambda: jq.ReactionWheelSpacecraft(J, np.ones((4, 2)), _wheels), ValueError, r"'axes'.*\(n, 3\)"),
+    (lambda: jq.ReactionWheelSpacecraft(J, np.vstack([AXES[:3], np.zeros(3)]), _wheels), ValueError,
+     "'axes'.*nonzero"),
     (lambda: jq.ReactionWheelSpacecraft(J, AXES, _wheels, wheel_torque_limit=[1.0, 2.0]), ValueError,
      "'wheel_torque_limit'.*scalar or shaped"),
     (lambda: jq.ReactionWheelSpacecraft(J, AXES, _wheels, wheel_momentum_limit=0.0), ValueError,
