@@ -33,8 +33,10 @@ adaptive ones reuse diffrax's own tableaus, and are ``AbstractAdaptiveSolver``s)
 ``RecursiveCheckpointAdjoint`` and ``BacksolveAdjoint`` (its backward solve uses the
 same Lie solver on the augmented state) all work. A new method is a subclass of
 :class:`AbstractRKMK` with a tableau and an order; anything else a subclass of
-:class:`AbstractLieSolver` implementing ``lie_step``. Dense output: slerp on the
-quaternion leaves (unit norm), linear on the others.
+:class:`AbstractLieSolver` implementing ``lie_step``. Dense output: for the first-same-as-last
+tableaus (``RKMK45``, ``RKMKTsit5``, ``RKMK8``) a quartic in the step's local coordinates
+through the tableau's own midpoint (:class:`LocalPolynomialInterpolation`, unit norm); for
+the others slerp on the quaternion leaves, linear on the rest (:class:`SlerpInterpolation`).
 """
 
 from __future__ import annotations
