@@ -55,6 +55,7 @@ from . import _safe
 from .algebra import _multiply
 from .conversions import _from_rotvec
 from .interpolate import _slerp
+from .kinematics import _vec_rate
 
 __all__ = [
     "AbstractLeafInterpolation", "SlerpInterpolation", "LocalPolynomialInterpolation", "BodyRateTerm", "AbstractLieSolver", "AbstractRKMK", "LieEuler", "RKMK4", "RKMK45", "RKMKTsit5", "RKMK8",
@@ -248,9 +249,7 @@ def unit(q: Array) -> Array:
 def body_rate(q: Array, qdot: Array) -> Array:
     """``w_b = 2 vec(q* qdot)`` for a unit ``q``: the body rate of a quaternion velocity; the
     component of ``qdot`` along ``q`` (a change of ``|q|`` only) drops out."""
-    qw, qv = q[..., :1], q[..., 1:]
-    dw, dv = qdot[..., :1], qdot[..., 1:]
-    return 2 * (qw * dv - dw * qv - jnp.cross(qv, dv))
+    return 2 * _vec_rate(q, qdot, "body")
 
 
 def dexpinv(theta: Array, w: Array, order: int) -> Array:
@@ -392,7 +391,7 @@ class AbstractRKMK(AbstractLieSolver):
 
         def stage(i, carry):
             ks, _ = carry
-            incr = [jnp.tensordot(a_arr[i].astype(k.dtype), k, axes=1) * h.astype(k.dtype) for k in ks]
+            incr = weigh(a_arr[i], ks)
             g = tangent(t0 + c_arr[i].astype(jnp.result_type(t0, t1)) * (t1 - t0), point(incr))
             th = [d if f else None for f, d in zip(flags, incr)]
             k = slope(th, g)
@@ -414,7 +413,7 @@ class AbstractRKMK(AbstractLieSolver):
         # FSAL: the last stage is the tangent at y1, so the end slopes of the local polynomial come free
         k1 = slope([d if f else None for f, d in zip(flags, incr)], g_last)
         mid = None if self.mid_weights is None else jax.tree.unflatten(tree, weigh(self.mid_weights, ks))
-        dense = dict(y0=y0, y1=y1, incr=jax.tree.unflatten(tree, incr), d0=jax.tree.unflatten(tree, weigh([1.0], [k[:1] for k in ks])),
+        dense = dict(y0=y0, y1=y1, incr=jax.tree.unflatten(tree, incr), d0=jax.tree.unflatten(tree, [k * h.astype(k.dtype) for k in k0]),
                      d1=jax.tree.unflatten(tree, [k * h.astype(k.dtype) for k in k1]), mid=mid)
         return y1, y_error, dense, g_last
 

@@ -21,9 +21,10 @@ import jax.numpy as jnp
 from jax import Array
 
 from . import _checks
-from .algebra import _multiply, _rotate
+from .algebra import _rotate
+from .dynamics import _euler_body
 from .inertia import _solve, _validated
-from .kinematics import _pure
+from .kinematics import _qdot_from_omega
 from .skew import _matvec
 
 __all__ = ["Quadrotor", "ReactionWheelSpacecraft"]
@@ -43,11 +44,6 @@ def _positive(x: Any, name: str) -> Array:
     if value is not None and not value > 0:
         raise ValueError(f"argument '{name}' must be positive, got {float(value)}")
     return arr
-
-
-def _quaternion_rate(q: Array, w: Array) -> Array:
-    """``qdot = 1/2 q (0, w_b)`` ([S] eq. (16)), the body rate ``w_b`` in the body frame."""
-    return 0.5 * _multiply(q, _pure(w))
 
 
 class Quadrotor(eqx.Module):
@@ -85,8 +81,7 @@ class Quadrotor(eqx.Module):
         thrust, torque = self.control(t, y, args)
         up = jnp.zeros_like(v).at[..., 2].set(1)
         accel = (jnp.asarray(thrust, v.dtype)[..., None] / self.mass) * _rotate(q, up) - self.gravity * up - self.drag * v
-        wdot = _solve(self.inertia, torque - jnp.cross(w, _matvec(self.inertia, w)))
-        return {"r": v, "v": accel, "q": _quaternion_rate(q, w), "w": wdot}
+        return {"r": v, "v": accel, "q": _qdot_from_omega(q, w, "body"), "w": _euler_body(self.inertia, w, torque)}
 
 
 class ReactionWheelSpacecraft(eqx.Module):
@@ -157,7 +152,7 @@ class ReactionWheelSpacecraft(eqx.Module):
         u = self.wheel_torque(jnp.asarray(u, h.dtype), h)
         total = _matvec(self.inertia, w) + h @ self.axes
         wdot = _solve(self.inertia, external - u @ self.axes - jnp.cross(w, total))
-        return {"q": _quaternion_rate(q, w), "w": wdot, "h": u}
+        return {"q": _qdot_from_omega(q, w, "body"), "w": wdot, "h": u}
 
 
 def _limit(x: Any, name: str, axes: Array) -> Array:
