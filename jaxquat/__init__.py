@@ -9,12 +9,13 @@ Each module's ``__all__`` is its public surface; the package re-exports them all
 """
 
 from . import (
-    algebra, conversions, dynamics, elliptic, euler, fixed_step, geometry, inertia, interpolate, kinematics, lie,
-    lie_solvers, models, rigid_body, simulate as _simulate_module, skew, spline, splitting, tangent, time_optimal, torque_free,
+    algebra, conversions, determination, dynamics, elliptic, euler, fixed_step, geometry, inertia, interpolate, kinematics, lie,
+    lie_solvers, mekf as _mekf_module, models, rigid_body, simulate as _simulate_module, skew, spline, splitting, tangent, time_optimal, torque_free,
     torques,
 )
 from .algebra import *  # noqa: F401,F403
 from .conversions import *  # noqa: F401,F403
+from .determination import *  # noqa: F401,F403
 from .dynamics import *  # noqa: F401,F403
 from .elliptic import *  # noqa: F401,F403
 from .euler import *  # noqa: F401,F403
@@ -25,6 +26,7 @@ from .interpolate import *  # noqa: F401,F403
 from .kinematics import *  # noqa: F401,F403
 from .lie import *  # noqa: F401,F403
 from .lie_solvers import *  # noqa: F401,F403
+from .mekf import *  # noqa: F401,F403
 from .models import *  # noqa: F401,F403
 from .rigid_body import *  # noqa: F401,F403
 from .simulate import *  # noqa: F401,F403
@@ -61,4 +63,6 @@ __all__ = [
     *fixed_step.__all__,
     *_simulate_module.__all__,
     *time_optimal.__all__,
+    *determination.__all__,
+    *_mekf_module.__all__,
 ]

@@ -96,8 +96,12 @@ def _minimal_rotation(a: Array, b: Array) -> Array:
 
 
 def align_vectors(
-    a: Float[Array, "*batch n 3"], b: Float[Array, "*batch n 3"], weights: Float[Array, "*batch n"] | None = None
-) -> Float[Array, "*batch 4"]:
+    a: Float[Array, "*batch n 3"],
+    b: Float[Array, "*batch n 3"],
+    weights: Float[Array, "*batch n"] | None = None,
+    *,
+    return_sensitivity: bool = False,
+) -> Float[Array, "*batch 4"] | tuple[Float[Array, "*batch 4"], Float[Array, "*batch 3 3"]]:
     """Rotation ``q`` minimising ``sum_i w_i |a_i - R(q) b_i|^2`` (Wahba's problem).
 
     Solved by Davenport's q-method: ``q`` is the top eigenvector of
@@ -112,6 +116,14 @@ def align_vectors(
     about an axis perpendicular to ``b`` when they are antiparallel). With
     ``n >= 2`` vectors all parallel the answer is likewise not unique and the
     gradient does not exist.
+
+    With ``return_sensitivity=True`` the result is ``(q, S)`` with scipy's sensitivity matrix
+    ``S = mean(w) (kappa I + B B^T) / zeta``, ``kappa = (lambda^2 - |B|_F^2) / 2``,
+    ``zeta = lambda kappa - det B`` (``lambda = q^T K q``, the sum of ``B``'s proper singular
+    values; Markley & Crassidis 2014, section 5.5). It is the covariance of the error rotation
+    vector in the frame of ``a`` (``q_true = Exp(e) q``) divided by the variance of one unit-weight
+    measurement: with weights ``1/s_i^2`` and unit vectors, ``S / mean(w)`` is that covariance,
+    ``(sum_i w_i (I - a_i a_i^T))^-1`` to first order. Needs ``n >= 2`` (a ``ValueError`` otherwise).
 
     Bad input: no vectors (``n = 0``) raises ``ValueError`` at trace time; weights
     are checked as in :func:`mean`. A problem with no information (a zero vector
@@ -133,11 +145,33 @@ def align_vectors(
         weights = _checks.weights(_checks.per_item(weights, "weights", a, "a"))
         a, b, weights = _checks.broadcast_batch([a, b, weights], ["a", "b", "weights"], [2, 2, 1])
         bad = ~_valid_weights(weights)
+    if return_sensitivity and a.shape[-2] == 1:
+        raise ValueError(
+            "align_vectors(..., return_sensitivity=True) needs at least two vector pairs (n >= 2 in "
+            f"(..., n, 3)): a single vector pair leaves the rotation about it undetermined, got shape {tuple(a.shape)}"
+        )
     if a.shape[-2] == 1:
         degenerate = (_safe.norm_sq(a[..., 0, :]) == 0) | (_safe.norm_sq(b[..., 0, :]) == 0)
         return _nan_where(bad | degenerate, _minimal_rotation(a[..., 0, :], b[..., 0, :]))
     bmat = jnp.einsum("...n,...ni,...nj->...ij", weights, a, b)
-    return _nan_where(bad | jnp.all(bmat == 0, axis=(-2, -1)), _top_eigenvector(_k_matrix(bmat)))
+    k = _k_matrix(bmat)
+    q = _nan_where(bad | jnp.all(bmat == 0, axis=(-2, -1)), _top_eigenvector(k))
+    if not return_sensitivity:
+        return q
+    return q, _sensitivity(k, q, bmat, weights)
+
+
+def _sensitivity(k: Array, q: Array, bmat: Array, weights: Array) -> Array:
+    """scipy's ``align_vectors`` sensitivity from Davenport's eigenpair, without an SVD: with ``s_i``
+    the proper singular values of ``B``, ``lambda = s_1 + s_2 + s_3``, ``kappa = sum_{i<j} s_i s_j``
+    and ``zeta = prod_{i<j} (s_i + s_j)``, written through ``tr(B B^T)`` and ``det B``."""
+    lam = jnp.einsum("...i,...ij,...j->...", q, k, q)
+    bbt = jnp.einsum("...ik,...jk->...ij", bmat, bmat)
+    kappa = 0.5 * (lam * lam - jnp.trace(bbt, axis1=-2, axis2=-1))
+    zeta = lam * kappa - jnp.linalg.det(bmat)
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=bmat.dtype), bbt.shape)
+    scale = jnp.mean(weights, axis=-1) / zeta
+    return scale[..., None, None] * (kappa[..., None, None] * eye + bbt)
 
 
 def random(key: Array, shape: tuple[int, ...] | int = (), dtype: Any = None) -> Float[Array, "*shape 4"]:
