@@ -49,6 +49,7 @@ lint: $(STAMP)
 bench: $(BENCH_STAMP)
 	$(PY) benchmarks/ops.py --write docs/benchmarks.md
 	$(PY) benchmarks/simulation.py --write docs/benchmarks.md
+	$(PY) benchmarks/estimation.py --write docs/benchmarks.md
 
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis

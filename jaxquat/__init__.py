@@ -11,7 +11,7 @@ Each module's ``__all__`` is its public surface; the package re-exports them all
 from . import (
     algebra, conversions, determination, dynamics, elliptic, euler, fixed_step, geometry, inertia, interpolate, kinematics, lie,
     lie_solvers, mekf as _mekf_module, models, rigid_body, simulate as _simulate_module, skew, spline, splitting, tangent, time_optimal, torque_free,
-    torques,
+    torques, ukf as _ukf_module,
 )
 from .algebra import *  # noqa: F401,F403
 from .conversions import *  # noqa: F401,F403
@@ -37,6 +37,7 @@ from .tangent import *  # noqa: F401,F403
 from .time_optimal import *  # noqa: F401,F403
 from .torque_free import *  # noqa: F401,F403
 from .torques import *  # noqa: F401,F403
+from .ukf import *  # noqa: F401,F403
 
 __version__ = "0.1.0"
 
@@ -65,4 +66,5 @@ __all__ = [
     *time_optimal.__all__,
     *determination.__all__,
     *_mekf_module.__all__,
+    *_ukf_module.__all__,
 ]

@@ -26,6 +26,7 @@ Updates use the Joseph form and the exact multiplicative reset ``q <- q Exp(dthe
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -41,9 +42,9 @@ from .lie import _right_jacobian
 from .skew import _hat
 
 __all__ = [
-    "MEKFState",
-    "MEKFUpdate",
-    "MEKFResult",
+    "FilterState",
+    "FilterUpdate",
+    "FilterResult",
     "mekf_init",
     "mekf_predict",
     "mekf_update",
@@ -54,7 +55,7 @@ __all__ = [
 _LOG_2PI = float(np.log(2.0 * np.pi))
 
 
-class MEKFState(NamedTuple):
+class FilterState(NamedTuple):
     """The filter's estimate: attitude ``q`` (unit), gyro ``bias`` (rad/s), error covariance ``P``."""
 
     q: Float[Array, "*batch 4"]
@@ -62,7 +63,7 @@ class MEKFState(NamedTuple):
     P: Float[Array, "*batch 6 6"]
 
 
-class MEKFUpdate(NamedTuple):
+class FilterUpdate(NamedTuple):
     """What a measurement update saw: the innovations (zero where a measurement is missing), the
     normalised innovation squared ``nis = nu^T S^-1 nu``, its degrees of freedom ``dof`` (3 per
     vector used) and the innovations' Gaussian log-likelihood ``-(nis + log det S + dof log 2 pi)/2``."""
@@ -73,9 +74,9 @@ class MEKFUpdate(NamedTuple):
     log_likelihood: Float[Array, "*batch"]
 
 
-class MEKFResult(NamedTuple):
+class FilterResult(NamedTuple):
     """A whole run of :func:`mekf`: row ``k`` is the estimate at ``t_k = t_0 + k dt`` after the
-    update with the measurements of ``t_k``, and that update's statistics (:class:`MEKFUpdate`)."""
+    update with the measurements of ``t_k``, and that update's statistics (:class:`FilterUpdate`)."""
 
     q: Float[Array, "*batch n 4"]
     bias: Float[Array, "*batch n 3"]
@@ -101,12 +102,17 @@ def _predict(q, bias, p, gyro, dt, gyro_noise, bias_noise):
     top = jnp.concatenate([_to_matrix(step).T, -dt * _right_jacobian(phi)], axis=-1)
     bottom = jnp.concatenate([jnp.zeros_like(eye), eye], axis=-1)
     transition = jnp.concatenate([top, bottom], axis=-2)
+    p = _symmetric(transition @ p @ transition.T + _process_noise(dt, gyro_noise, bias_noise, p.dtype))
+    return q, bias, p
+
+
+def _process_noise(dt, gyro_noise, bias_noise, dtype):
+    """The discrete process noise ``Q`` of (dtheta, dbias) over ``dt`` (module docstring)."""
+    eye = jnp.eye(3, dtype=dtype)
     sv2, su2 = gyro_noise * gyro_noise, bias_noise * bias_noise
     q11 = (sv2 * dt + su2 * dt**3 / 3.0) * eye
     q12 = (-0.5 * su2 * dt * dt) * eye
-    noise = jnp.block([[q11, q12], [q12, (su2 * dt) * eye]])
-    p = _symmetric(transition @ p @ transition.T + noise)
-    return q, bias, p
+    return jnp.block([[q11, q12], [q12, (su2 * dt) * eye]])
 
 
 def _kalman(q, bias, p, h, residual, r_diag):
@@ -126,11 +132,21 @@ def _kalman(q, bias, p, h, residual, r_diag):
     return (q, bias + dx[3:], p), nis, logdet
 
 
-def _update_vectors(q, bias, p, body, ref, sigma):
+def _masked(body, ref):
+    """Which of the ``m`` rows hold a measurement (no NaN in either vector), and both sets with
+    the missing rows zeroed before any arithmetic, so no NaN reaches a gradient through ``where``."""
     valid = jnp.all(jnp.isfinite(body), axis=-1) & jnp.all(jnp.isfinite(ref), axis=-1)
-    # Zero the missing rows before any arithmetic, so no NaN reaches a gradient through `where`.
-    body = jnp.where(valid[:, None], body, 0.0)
-    ref = jnp.where(valid[:, None], ref, 0.0)
+    return valid, jnp.where(valid[:, None], body, 0.0), jnp.where(valid[:, None], ref, 0.0)
+
+
+def _statistics(nis, logdet, valid):
+    """Degrees of freedom (3 per vector used) and the innovations' Gaussian log-likelihood."""
+    dof = 3.0 * jnp.sum(valid).astype(nis.dtype)
+    return dof, -0.5 * (nis + logdet + dof * _LOG_2PI)
+
+
+def _update_vectors(q, bias, p, body, ref, sigma):
+    valid, body, ref = _masked(body, ref)
     predicted = _rotate(jnp.broadcast_to(_conjugate(q), ref.shape[:-1] + (4,)), ref)
     residual = jnp.where(valid[:, None], body - predicted, 0.0)
     m = body.shape[0]
@@ -138,8 +154,7 @@ def _update_vectors(q, bias, p, body, ref, sigma):
     h = jnp.concatenate([h_att, jnp.zeros_like(h_att)], axis=-1).reshape(3 * m, 6)
     r_diag = jnp.repeat(jnp.where(valid, sigma * sigma, 1.0), 3)
     (q, bias, p), nis, logdet = _kalman(q, bias, p, h, residual.reshape(-1), r_diag)
-    dof = 3.0 * jnp.sum(valid).astype(p.dtype)
-    return (q, bias, p), (residual, nis, dof, -0.5 * (nis + logdet + dof * _LOG_2PI))
+    return (q, bias, p), (residual, nis, *_statistics(nis, logdet, valid))
 
 
 def _update_quaternion(q, bias, p, q_meas, sigma):
@@ -149,8 +164,7 @@ def _update_quaternion(q, bias, p, q_meas, sigma):
     h = jnp.concatenate([jnp.eye(3, dtype=p.dtype), jnp.zeros((3, 3), p.dtype)], axis=-1) * valid
     r_diag = jnp.full((3,), jnp.where(valid, sigma * sigma, 1.0))
     (q, bias, p), nis, logdet = _kalman(q, bias, p, h, residual, r_diag)
-    dof = 3.0 * valid.astype(p.dtype)
-    return (q, bias, p), (residual[None], nis, dof, -0.5 * (nis + logdet + dof * _LOG_2PI))
+    return (q, bias, p), (residual[None], nis, *_statistics(nis, logdet, valid))
 
 
 def _flat(update):
@@ -158,7 +172,9 @@ def _flat(update):
     return lambda *args: tuple(x for part in update(*args) for x in part)
 
 
-def _run(q0, bias0, p0, dt, gyro, body, ref, sigma, gyro_noise, bias_noise):
+def _scan(predict, update, q0, bias0, p0, dt, gyro, body, ref, sigma, gyro_noise, bias_noise):
+    """One filter over a record: ``predict(q, bias, P, gyro, dt, gyro_noise, bias_noise)`` and
+    ``update(q, bias, P, body, ref, sigma)`` kernels in a ``lax.scan``."""
     # Step k propagates from t_{k-1} with gyro[k-1], then updates with the vectors of t_k; step 0
     # propagates over dt = 0 (the identity: Exp(0) = 1, Phi = I, Q = 0), so one scan body serves all.
     gyro_prev = jnp.concatenate([gyro[:1], gyro[:-1]], axis=0)
@@ -166,12 +182,15 @@ def _run(q0, bias0, p0, dt, gyro, body, ref, sigma, gyro_noise, bias_noise):
 
     def step(state, inputs):
         g, h, b, r = inputs
-        state = _predict(*state, g, h, gyro_noise, bias_noise)
-        state, stats = _update_vectors(*state, b, r, sigma)
+        state = predict(*state, g, h, gyro_noise, bias_noise)
+        state, stats = update(*state, b, r, sigma)
         return state, (*state, *stats)
 
     _, out = jax.lax.scan(step, (q0, bias0, p0), (gyro_prev, dts, body, ref))
     return out
+
+
+_RECORD_SIGNATURE = "(4),(3),(6,6),(),(n,3),(n,m,3),(n,m,3),(m),(),()->(n,4),(n,3),(n,6,6),(n,m,3),(n),(n),(n)"
 
 
 # ------------------------------------------------------------------ checks
@@ -214,9 +233,9 @@ def _vectors(body: object, ref: object, leading: str) -> tuple[Array, Array]:
     return body, ref
 
 
-def _state(state: MEKFState) -> tuple[Array, Array, Array]:
+def _state(state: FilterState) -> tuple[Array, Array, Array]:
     if not isinstance(state, tuple) or len(state) != 3:
-        raise TypeError(f"argument 'state' must be an MEKFState (q, bias, P), got {type(state).__name__}")
+        raise TypeError(f"argument 'state' must be a FilterState (q, bias, P), got {type(state).__name__}")
     return _checks.quat(state[0], "state.q"), _checks.vec3(state[1], "state.bias"), _cov6(state[2], "state.P")
 
 
@@ -225,17 +244,17 @@ def _state(state: MEKFState) -> tuple[Array, Array, Array]:
 
 def mekf_init(
     q0: Float[Array, "*batch 4"], bias0: Float[Array, "*batch 3"], P0: Float[Array, "*batch 6 6"]
-) -> MEKFState:
+) -> FilterState:
     """The filter state at ``t_0``: ``q0`` (normalised here), ``bias0`` (rad/s) and the covariance
     ``P0`` of ``(dtheta, dbias)`` (rad^2, rad^2/s^2; the attitude block is body-frame)."""
     q0, bias0, p0 = _checks.quat(q0, "q0"), _checks.vec3(bias0, "bias0"), _cov6(P0, "P0")
     q0, bias0, p0 = _checks.broadcast_batch([q0, bias0, p0], ["q0", "bias0", "P0"], [1, 1, 2])
-    return MEKFState(q0 / jnp.linalg.norm(q0, axis=-1, keepdims=True), bias0, p0)
+    return FilterState(q0 / jnp.linalg.norm(q0, axis=-1, keepdims=True), bias0, p0)
 
 
 def mekf_predict(
-    state: MEKFState, gyro: Float[Array, "*batch 3"], dt: Float[Array, "*batch"] | float, *, gyro_noise, bias_noise
-) -> MEKFState:
+    state: FilterState, gyro: Float[Array, "*batch 3"], dt: Float[Array, "*batch"] | float, *, gyro_noise, bias_noise
+) -> FilterState:
     """Propagate the estimate over ``dt`` with the gyro sample ``gyro`` (rad/s, body frame) held.
 
     ``q <- q Exp((gyro - bias) dt)`` (exact for a rate held over the step; no first-order
@@ -243,13 +262,28 @@ def mekf_predict(
     docstring). ``gyro_noise``, ``bias_noise``: the spectral densities'
     square roots ``sigma_v`` (rad/s^(1/2)) and ``sigma_u`` (rad/s^(3/2)).
     """
+    args = _predict_args(state, gyro, dt, gyro_noise, bias_noise)
+    return FilterState(*jnp.vectorize(_predict, signature=_PREDICT_SIGNATURE)(*args))
+
+
+_PREDICT_SIGNATURE = "(4),(3),(6,6),(3),(),(),()->(4),(3),(6,6)"
+_UPDATE_SIGNATURE = "(4),(3),(6,6),(m,3),(m,3),(m)->(4),(3),(6,6),(m,3),(),(),()"
+
+
+def _predict_args(state, gyro, dt, gyro_noise, bias_noise) -> list[Array]:
     q, bias, p = _state(state)
     gyro = _checks.vec3(gyro, "gyro")
     dt, sv, su = _checks.scalar_like(dt, "dt"), _noise(gyro_noise, "gyro_noise"), _noise(bias_noise, "bias_noise")
-    args = _checks.broadcast_batch([q, bias, p, gyro, dt, sv, su], ["q", "bias", "P", "gyro", "dt", "gyro_noise",
+    return _checks.broadcast_batch([q, bias, p, gyro, dt, sv, su], ["q", "bias", "P", "gyro", "dt", "gyro_noise",
                                    "bias_noise"], [1, 1, 2, 1, 0, 0, 0])
-    fn = jnp.vectorize(_predict, signature="(4),(3),(6,6),(3),(),(),()->(4),(3),(6,6)")
-    return MEKFState(*fn(*args))
+
+
+def _update_args(state, vectors_body, vectors_ref, vector_noise) -> list[Array]:
+    q, bias, p = _state(state)
+    body, ref = _vectors(vectors_body, vectors_ref, "")
+    sigma = _sigma(vector_noise, "vector_noise", body.shape[-2])
+    return _checks.broadcast_batch([q, bias, p, body, ref, sigma],
+                                   ["q", "bias", "P", "vectors_body", "vectors_ref", "vector_noise"], [1, 1, 2, 2, 2, 1])
 
 
 def _sigma(noise: object, name: str, m: int) -> Array:
@@ -263,12 +297,12 @@ def _sigma(noise: object, name: str, m: int) -> Array:
 
 
 def mekf_update(
-    state: MEKFState,
+    state: FilterState,
     vectors_body: Float[Array, "*batch m 3"],
     vectors_ref: Float[Array, "*batch m 3"],
     *,
     vector_noise: Float[Array, "*batch m"] | float,
-) -> tuple[MEKFState, MEKFUpdate]:
+) -> tuple[FilterState, FilterUpdate]:
     """Update with ``m`` vector measurements at one time: ``b_i = R(q)^T r_i + v_i``.
 
     Measurement matrix rows ``H_i = [[b_hat_i x], 0]`` with ``b_hat_i = R(q)^T r_i`` (the
@@ -282,19 +316,14 @@ def mekf_update(
     QUEST measurement model, Shuster 1989): the estimate is unaffected, but for normalised unit
     vectors the NIS has about 2, not 3, degrees of freedom per vector.
     """
-    q, bias, p = _state(state)
-    body, ref = _vectors(vectors_body, vectors_ref, "")
-    sigma = _sigma(vector_noise, "vector_noise", body.shape[-2])
-    args = _checks.broadcast_batch([q, bias, p, body, ref, sigma],
-                                   ["q", "bias", "P", "vectors_body", "vectors_ref", "vector_noise"], [1, 1, 2, 2, 2, 1])
-    fn = jnp.vectorize(_flat(_update_vectors), signature="(4),(3),(6,6),(m,3),(m,3),(m)->(4),(3),(6,6),(m,3),(),(),()")
-    q, bias, p, *stats = fn(*args)
-    return MEKFState(q, bias, p), MEKFUpdate(*stats)
+    args = _update_args(state, vectors_body, vectors_ref, vector_noise)
+    q, bias, p, *stats = jnp.vectorize(_flat(_update_vectors), signature=_UPDATE_SIGNATURE)(*args)
+    return FilterState(q, bias, p), FilterUpdate(*stats)
 
 
 def mekf_update_quaternion(
-    state: MEKFState, q_meas: Float[Array, "*batch 4"], *, noise: Float[Array, "*batch"] | float
-) -> tuple[MEKFState, MEKFUpdate]:
+    state: FilterState, q_meas: Float[Array, "*batch 4"], *, noise: Float[Array, "*batch"] | float
+) -> tuple[FilterState, FilterUpdate]:
     """Update with a measured attitude ``q_meas = q_true Exp(v)``, ``v ~ N(0, noise^2 I)`` (rad).
 
     Innovation ``Log(q* q_meas)`` (the body-frame rotation vector from the estimate to the
@@ -306,7 +335,7 @@ def mekf_update_quaternion(
     args = _checks.broadcast_batch([q, bias, p, q_meas, s], ["q", "bias", "P", "q_meas", "noise"], [1, 1, 2, 1, 0])
     fn = jnp.vectorize(_flat(_update_quaternion), signature="(4),(3),(6,6),(4),()->(4),(3),(6,6),(1,3),(),(),()")
     q, bias, p, *stats = fn(*args)
-    return MEKFState(q, bias, p), MEKFUpdate(*stats)
+    return FilterState(q, bias, p), FilterUpdate(*stats)
 
 
 def mekf(
@@ -321,7 +350,7 @@ def mekf(
     vector_noise: Float[Array, "*batch m"] | float,
     gyro_noise: Float[Array, "*batch"] | float,
     bias_noise: Float[Array, "*batch"] | float,
-) -> MEKFResult:
+) -> FilterResult:
     """Run the MEKF over a whole record in one ``lax.scan`` (Crassidis & Junkins, Table 7.1).
 
     Samples are taken every ``dt`` at ``t_k = t_0 + k dt``: ``gyro[k]`` and the vector
@@ -336,6 +365,12 @@ def mekf(
     Monte Carlo of many runs is one call (or ``vmap``); everything is differentiable, including
     with respect to the noise parameters (the innovations' log-likelihood is in the result).
     """
+    args = _record(q0, bias0, P0, dt, gyro, vectors_body, vectors_ref, vector_noise, gyro_noise, bias_noise)
+    return FilterResult(*jnp.vectorize(functools.partial(_scan, _predict, _update_vectors), signature=_RECORD_SIGNATURE)(*args))
+
+
+def _record(q0, bias0, P0, dt, gyro, vectors_body, vectors_ref, vector_noise, gyro_noise, bias_noise) -> list[Array]:
+    """Validate a whole-record filter call and broadcast its batch axes (the runners' arguments)."""
     q0, bias0, p0 = mekf_init(q0, bias0, P0)
     gyro = _checks.vec3(gyro, "gyro")
     if gyro.ndim < 2 or gyro.shape[-2] == 0:
@@ -349,9 +384,5 @@ def mekf(
     sigma = _sigma(vector_noise, "vector_noise", body.shape[-2])
     dt, sv, su = _checks.scalar_like(dt, "dt"), _noise(gyro_noise, "gyro_noise"), _noise(bias_noise, "bias_noise")
     names = ["q0", "bias0", "P0", "dt", "gyro", "vectors_body", "vectors_ref", "vector_noise", "gyro_noise", "bias_noise"]
-    args = _checks.broadcast_batch([q0, bias0, p0, dt, gyro, body, ref, sigma, sv, su], names,
+    return _checks.broadcast_batch([q0, bias0, p0, dt, gyro, body, ref, sigma, sv, su], names,
                                    [1, 1, 2, 0, 2, 3, 3, 1, 0, 0])
-    fn = jnp.vectorize(
-        _run, signature="(4),(3),(6,6),(),(n,3),(n,m,3),(n,m,3),(m),(),()->(n,4),(n,3),(n,6,6),(n,m,3),(n),(n),(n)"
-    )
-    return MEKFResult(*fn(*args))

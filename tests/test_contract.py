@@ -487,8 +487,8 @@ def test_every_public_name_is_in_the_contract():
                  # an eager optimiser (not a traced function): tests/test_time_optimal.py
                  "minimum_time_reorientation", "Reorientation",
                  # the MEKF (a filter over a time axis, with its own jit/vmap/grad tests): tests/test_mekf.py
-                 "MEKFState", "MEKFUpdate", "MEKFResult", "mekf_init", "mekf_predict", "mekf_update",
-                 "mekf_update_quaternion", "mekf"}
+                 "FilterState", "FilterUpdate", "FilterResult", "mekf_init", "mekf_predict", "mekf_update",
+                 "mekf_update_quaternion", "mekf", "ukf_predict", "ukf_update", "ukf"}
     suffixes = ("_nearest", "_body", "_space", "_inertia", "_t")
     covered = set(REGISTRY) | {n[: -len(s)] for n in REGISTRY for s in suffixes if n.endswith(s)}
     assert set(jq.__all__) <= covered | elsewhere, set(jq.__all__) - covered - elsewhere

@@ -241,7 +241,7 @@ def test_bad_input():
         jq.mekf(q0, b0, p0, DT, g, v, v, **(kw | dict(vector_noise=jnp.ones(3))))
     with pytest.raises(ValueError, match="'gyro_noise' must be finite and non-negative"):
         jq.mekf(q0, b0, p0, DT, g, v, v, **(kw | dict(gyro_noise=-1.0)))
-    with pytest.raises(TypeError, match="'state' must be an MEKFState"):
+    with pytest.raises(TypeError, match="'state' must be a FilterState"):
         jq.mekf_predict(q0, g[0], DT, gyro_noise=SV, bias_noise=SU)
     with pytest.raises(ValueError, match=r"'gyro'.*\(\.\.\., 3\)"):
         jq.mekf_predict(jq.mekf_init(q0, b0, p0), jnp.zeros(4), DT, gyro_noise=SV, bias_noise=SU)
