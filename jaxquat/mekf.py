@@ -278,6 +278,15 @@ def _predict_args(state, gyro, dt, gyro_noise, bias_noise) -> list[Array]:
                                    "bias_noise"], [1, 1, 2, 1, 0, 0, 0])
 
 
+_QUATERNION_SIGNATURE = "(4),(3),(6,6),(4),()->(4),(3),(6,6),(1,3),(),(),()"
+
+
+def _quaternion_args(state, q_meas, noise) -> list[Array]:
+    q, bias, p = _state(state)
+    q_meas, s = _checks.quat(q_meas, "q_meas"), _noise(noise, "noise")
+    return _checks.broadcast_batch([q, bias, p, q_meas, s], ["q", "bias", "P", "q_meas", "noise"], [1, 1, 2, 1, 0])
+
+
 def _update_args(state, vectors_body, vectors_ref, vector_noise) -> list[Array]:
     q, bias, p = _state(state)
     body, ref = _vectors(vectors_body, vectors_ref, "")
@@ -330,11 +339,8 @@ def mekf_update_quaternion(
     measurement; either sign of ``q_meas``), ``H = [I, 0]``. A NaN in ``q_meas`` means no
     measurement. The innovation is returned shaped ``(..., 1, 3)``.
     """
-    q, bias, p = _state(state)
-    q_meas, s = _checks.quat(q_meas, "q_meas"), _noise(noise, "noise")
-    args = _checks.broadcast_batch([q, bias, p, q_meas, s], ["q", "bias", "P", "q_meas", "noise"], [1, 1, 2, 1, 0])
-    fn = jnp.vectorize(_flat(_update_quaternion), signature="(4),(3),(6,6),(4),()->(4),(3),(6,6),(1,3),(),(),()")
-    q, bias, p, *stats = fn(*args)
+    args = _quaternion_args(state, q_meas, noise)
+    q, bias, p, *stats = jnp.vectorize(_flat(_update_quaternion), signature=_QUATERNION_SIGNATURE)(*args)
     return FilterState(q, bias, p), FilterUpdate(*stats)
 
 

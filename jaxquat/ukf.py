@@ -15,7 +15,9 @@ Brossard, Barrau & Bonnabel (2020), written with this library's retraction: with
   ``P_xz``; ``K = P_xz P_zz^-1``, reset ``q <- q Exp(dtheta)``, ``P <- P - K P_zz K^T``.
 
 Measurements and noise are as in :mod:`jaxquat.mekf` (NaN rows are missing, same statistics),
-and the state and result types are shared with it.
+and the state and result types are shared with it. Unlike the MEKF, the sigma points need a
+Cholesky factor of ``P``: a ``P`` that is not positive definite (a correlation of exactly 1, say)
+gives NaN, where the MEKF would carry it on.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from .algebra import _conjugate, _multiply, _rotate
 from .conversions import _from_rotvec, _to_rotvec
 from .mekf import (
     _PREDICT_SIGNATURE,
+    _QUATERNION_SIGNATURE,
     _RECORD_SIGNATURE,
     _UPDATE_SIGNATURE,
     FilterResult,
@@ -41,6 +44,7 @@ from .mekf import (
     _masked,
     _predict_args,
     _process_noise,
+    _quaternion_args,
     _record,
     _scan,
     _statistics,
@@ -48,7 +52,7 @@ from .mekf import (
     _update_args,
 )
 
-__all__ = ["ukf_predict", "ukf_update", "ukf"]
+__all__ = ["ukf_predict", "ukf_update", "ukf_update_quaternion", "ukf"]
 
 
 def _points(q, bias, p, kappa):
@@ -96,6 +100,28 @@ def _update_vectors(q, bias, p, body, ref, sigma, kappa):
     return (q, bias + dx[3:], p), (residual.reshape(m, 3), nis, *_statistics(nis, logdet, valid))
 
 
+def _update_quaternion(q, bias, p, q_meas, sigma, kappa):
+    # The points' predicted measurement, read in the tangent space at the estimate, is their own
+    # attitude offset minus(q_i, q) = d_i: the unscented update is then exactly the linear one.
+    valid = jnp.all(jnp.isfinite(q_meas))
+    q_meas = jnp.where(valid, q_meas, q)
+    _, _, offsets, w = _points(q, bias, p, kappa)
+    z = offsets[:, :3] * valid
+    z_mean = w @ z
+    dz = z - z_mean[None, :]
+    pzz = _symmetric((dz * w[:, None]).T @ dz + jnp.diag(jnp.full((3,), jnp.where(valid, sigma * sigma, 1.0))))
+    pxz = (offsets * w[:, None]).T @ dz
+    residual = jnp.where(valid, _to_rotvec(_multiply(_conjugate(q), q_meas)), 0.0) - z_mean
+    chol = jnp.linalg.cholesky(pzz)
+    solve = jax.scipy.linalg.cho_solve
+    gain = solve((chol, True), pxz.T).T
+    dx = gain @ residual
+    p = _symmetric(p - gain @ pzz @ gain.T)
+    nis = residual @ solve((chol, True), residual)
+    logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
+    return (_multiply(q, _from_rotvec(dx[:3])), bias + dx[3:], p), (residual[None], nis, *_statistics(nis, logdet, valid))
+
+
 def _kappa(kappa: float) -> float:
     if isinstance(kappa, jax.core.Tracer) or not np.isfinite(kappa) or kappa <= 0:
         raise ValueError(f"argument 'kappa' must be a positive Python float (the sigma-point spread), got {kappa!r}")
@@ -134,6 +160,19 @@ def ukf_update(
     args = _update_args(state, vectors_body, vectors_ref, vector_noise)
     fn = _flat(functools.partial(_update_vectors, kappa=_kappa(kappa)))
     q, bias, p, *stats = jnp.vectorize(fn, signature=_UPDATE_SIGNATURE)(*args)
+    return FilterState(q, bias, p), FilterUpdate(*stats)
+
+
+def ukf_update_quaternion(
+    state: FilterState, q_meas: Float[Array, "*batch 4"], *, noise: Float[Array, "*batch"] | float, kappa: float = 1.0
+) -> tuple[FilterState, FilterUpdate]:
+    """Update with a measured attitude ``q_meas = q_true Exp(v)``, ``v ~ N(0, noise^2 I)`` (rad),
+    through the sigma points: read in the tangent space at the estimate the measurement is linear
+    in the error (``minus(q_i, q) = d_i``), so this equals :func:`jaxquat.mekf_update_quaternion`
+    to rounding. A NaN in ``q_meas`` means no measurement."""
+    args = _quaternion_args(state, q_meas, noise)
+    fn = _flat(functools.partial(_update_quaternion, kappa=_kappa(kappa)))
+    q, bias, p, *stats = jnp.vectorize(fn, signature=_QUATERNION_SIGNATURE)(*args)
     return FilterState(q, bias, p), FilterUpdate(*stats)
 
 

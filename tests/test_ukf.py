@@ -69,6 +69,19 @@ def test_init_predict_update_compose_to_the_runner_and_gradients_are_finite():
     assert np.isfinite(float(g))
 
 
+def test_quaternion_update_equals_the_mekf_one():
+    """Read in the tangent space at the estimate a quaternion measurement is linear in the error, so
+    the unscented and the extended updates agree to rounding; a NaN measurement changes nothing."""
+    p = jnp.asarray(np.diag([1e-4, 2e-4, 3e-4, 1e-8, 1e-8, 1e-8]) + 1e-7 * np.eye(6)[::-1], DTYPE)  # correlations 0.1
+    state = jq.mekf_init(jq.from_rotvec(jnp.asarray([0.3, 0.1, -0.2], DTYPE)), jnp.zeros(3, DTYPE), p)
+    meas = jq.from_rotvec(jnp.asarray([0.31, 0.08, -0.21], DTYPE))
+    (u, su), (m, sm) = jq.ukf_update_quaternion(state, meas, noise=1e-2), jq.mekf_update_quaternion(state, meas, noise=1e-2)
+    tol = 1e-12 if X64 else 1e-6
+    assert np.allclose(u.q, m.q, atol=tol) and np.allclose(u.P, m.P, atol=tol * 1e-3) and np.allclose(su.nis, sm.nis, rtol=1e-6 if X64 else 1e-3)
+    same, stats = jq.ukf_update_quaternion(state, jnp.full(4, jnp.nan, DTYPE), noise=1e-2)
+    assert np.array_equal(same.q, state.q) and float(stats.dof) == 0.0
+
+
 def test_bad_input():
     q0, b0, p0 = jnp.asarray([1.0, 0, 0, 0]), jnp.zeros(3), jnp.eye(6)
     g, v = jnp.zeros((5, 3)), jnp.ones((5, 2, 3))
