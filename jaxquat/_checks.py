@@ -143,6 +143,25 @@ def weights(w: Array, name: str = "weights") -> Array:
     return w
 
 
+def vector_pairs(a: Any, b: Any, w: Any, names: tuple[str, str]) -> tuple[Array, Array, Array | None]:
+    """Validate a Wahba problem's arguments: two vector sets shaped ``(..., n, 3)`` with the same
+    ``n >= 1`` and optional per-pair weights ``w`` ``(..., n)`` (argument ``weights``, checked as
+    :func:`weights`), all broadcast to one batch shape. ``w`` stays None when not given."""
+    a, b = vec3(a, names[0]), vec3(b, names[1])
+    if a.ndim < 2 or b.ndim < 2 or a.shape[-2] != b.shape[-2]:
+        raise ValueError(
+            f"arguments '{names[0]}' and '{names[1]}' must be shaped (..., n, 3) with the same n, "
+            f"got {tuple(a.shape)} and {tuple(b.shape)}"
+        )
+    nonempty(a, names[0], -2, "vector pair (n >= 1 in (..., n, 3))")
+    if w is None:
+        a, b = broadcast_batch([a, b], list(names), [2, 2])
+        return a, b, None
+    w = weights(per_item(w, "weights", a, names[0]))
+    a, b, w = broadcast_batch([a, b, w], [*names, "weights"], [2, 2, 1])
+    return a, b, w
+
+
 def broadcast_batch(arrays: list[Array], names: list[str], core_ndims: list[int]) -> list[Array]:
     """Broadcast the leading (batch) axes of several arrays, keeping their core axes.
 

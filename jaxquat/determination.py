@@ -19,7 +19,7 @@ from jax import Array
 from jaxtyping import Float
 
 from . import _checks, _safe
-from .algebra import _canonical_sign
+from .algebra import _canonicalize
 from .conversions import _from_matrix_shepperd, _k_matrix
 
 __all__ = ["triad", "quest", "attitude_covariance"]
@@ -81,8 +81,7 @@ def _best_column(adj: list[list[Array]]) -> Array:
     best = jnp.argmax(jnp.stack([jnp.abs(adj[i][i]) for i in range(4)], axis=-1), axis=-1)
     cols = jnp.stack([jnp.stack([adj[r][c] for r in range(4)], axis=-1) for c in range(4)], axis=-2)
     col = jnp.take_along_axis(cols, best[..., None, None], axis=-2)[..., 0, :]
-    col = col / jnp.sqrt(_safe.norm_sq(col))[..., None]
-    return col * _canonical_sign(*(col[..., i] for i in range(4)))[..., None]
+    return _canonicalize(_unit(col))
 
 
 def _shifted(k: Array, lam: Array) -> Array:
@@ -146,22 +145,12 @@ def _quest_kernel_jvp(primals, tangents):
 
 
 def _observations(vectors_body, vectors_ref, weights):
-    b = _checks.vec3(vectors_body, "vectors_body")
-    r = _checks.vec3(vectors_ref, "vectors_ref")
-    if b.ndim < 2 or r.ndim < 2 or b.shape[-2] != r.shape[-2]:
-        raise ValueError(
-            "arguments 'vectors_body' and 'vectors_ref' must be shaped (..., n, 3) with the same n, "
-            f"got {tuple(b.shape)} and {tuple(r.shape)}"
-        )
+    b, r, w = _checks.vector_pairs(vectors_body, vectors_ref, weights, ("vectors_body", "vectors_ref"))
     if b.shape[-2] < 2:
         raise ValueError(
             f"argument 'vectors_body' must hold n >= 2 vectors (..., n, 3) to fix an attitude, got shape {tuple(b.shape)}"
         )
-    if weights is None:
-        b, r = _checks.broadcast_batch([b, r], ["vectors_body", "vectors_ref"], [2, 2])
-        return b, r, jnp.ones(b.shape[:-1], b.dtype)
-    w = _checks.weights(_checks.per_item(weights, "weights", b, "vectors_body"))
-    return _checks.broadcast_batch([b, r, w], ["vectors_body", "vectors_ref", "weights"], [2, 2, 1])
+    return b, r, jnp.ones(b.shape[:-1], b.dtype) if w is None else w
 
 
 def quest(

@@ -130,20 +130,11 @@ def align_vectors(
     when ``n == 1``; every weighted product ``a_i b_i^T`` zero, e.g. all vectors
     zero) gives NaN for that element, under ``jit`` or not.
     """
-    a = _checks.vec3(a, "a")
-    b = _checks.vec3(b, "b")
-    if a.ndim < 2 or b.ndim < 2 or a.shape[-2] != b.shape[-2]:
-        raise ValueError(
-            f"arguments 'a' and 'b' must be shaped (..., n, 3) with the same n, got {tuple(a.shape)} and {tuple(b.shape)}"
-        )
-    _checks.nonempty(a, "a", -2, "vector pair (n >= 1 in (..., n, 3))")
+    a, b, weights = _checks.vector_pairs(a, b, weights, ("a", "b"))
     if weights is None:
-        a, b = _checks.broadcast_batch([a, b], ["a", "b"], [2, 2])
         weights = jnp.ones(a.shape[:-1], a.dtype)
         bad = jnp.zeros(a.shape[:-2], bool)
     else:
-        weights = _checks.weights(_checks.per_item(weights, "weights", a, "a"))
-        a, b, weights = _checks.broadcast_batch([a, b, weights], ["a", "b", "weights"], [2, 2, 1])
         bad = ~_valid_weights(weights)
     if return_sensitivity and a.shape[-2] == 1:
         raise ValueError(
