@@ -115,21 +115,37 @@ def _process_noise(dt, gyro_noise, bias_noise, dtype):
     return jnp.block([[q11, q12], [q12, (su2 * dt) * eye]])
 
 
+def _innovate(q, bias, s, cross_t, residual):
+    """The gain ``K = C S^-1`` from the innovation covariance ``S`` (k, k) and the error state's
+    cross covariance with the measurements, transposed (``cross_t = C^T``, (k, 6)); the state reset
+    by ``dx = K residual`` (``q Exp(dtheta)``, ``bias + dbias``); the NIS and ``log det S``. One
+    Cholesky factor of ``S`` serves all (the MEKF's and the unscented filter's updates)."""
+    chol = jnp.linalg.cholesky(s)
+    solve = functools.partial(jax.scipy.linalg.cho_solve, (chol, True))
+    gain = solve(cross_t).T
+    dx = gain @ residual
+    nis = residual @ solve(residual)
+    logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
+    return gain, _multiply(q, _from_rotvec(dx[:3])), bias + dx[3:], nis, logdet
+
+
 def _kalman(q, bias, p, h, residual, r_diag):
     """One linear update of the error state with stacked rows ``h`` (k, 6), ``residual`` (k,) and
     diagonal measurement covariance ``r_diag`` (k,). Missing rows: ``h = 0``, ``residual = 0``,
     ``r_diag = 1`` (they then change nothing and add nothing to the statistics)."""
     s = _symmetric(h @ p @ h.T + jnp.diag(r_diag))
-    chol = jnp.linalg.cholesky(s)
-    solve = jax.scipy.linalg.cho_solve
-    gain = solve((chol, True), h @ p).T  # P H^T S^-1 (S and P symmetric)
-    dx = gain @ residual
+    gain, q, bias, nis, logdet = _innovate(q, bias, s, h @ p, residual)  # K = P H^T S^-1 (P symmetric)
     a = jnp.eye(6, dtype=p.dtype) - gain @ h
     p = _symmetric(a @ p @ a.T + (gain * r_diag[None, :]) @ gain.T)
-    nis = residual @ solve((chol, True), residual)
-    logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
-    q = _multiply(q, _from_rotvec(dx[:3]))
-    return (q, bias + dx[3:], p), nis, logdet
+    return (q, bias, p), nis, logdet
+
+
+def _quaternion_innovation(q, q_meas):
+    """Whether ``q_meas`` is a measurement (no NaN), and ``Log(q* q_meas)`` (0 when it is not; the
+    NaN is replaced before any arithmetic, so none reaches a gradient)."""
+    valid = jnp.all(jnp.isfinite(q_meas))
+    q_meas = jnp.where(valid, q_meas, q)
+    return valid, jnp.where(valid, _to_rotvec(_multiply(_conjugate(q), q_meas)), 0.0)
 
 
 def _masked(body, ref):
@@ -158,9 +174,7 @@ def _update_vectors(q, bias, p, body, ref, sigma):
 
 
 def _update_quaternion(q, bias, p, q_meas, sigma):
-    valid = jnp.all(jnp.isfinite(q_meas))
-    q_meas = jnp.where(valid, q_meas, q)
-    residual = jnp.where(valid, _to_rotvec(_multiply(_conjugate(q), q_meas)), 0.0)
+    valid, residual = _quaternion_innovation(q, q_meas)
     h = jnp.concatenate([jnp.eye(3, dtype=p.dtype), jnp.zeros((3, 3), p.dtype)], axis=-1) * valid
     r_diag = jnp.full((3,), jnp.where(valid, sigma * sigma, 1.0))
     (q, bias, p), nis, logdet = _kalman(q, bias, p, h, residual, r_diag)

@@ -41,9 +41,11 @@ from .mekf import (
     FilterState,
     FilterUpdate,
     _flat,
+    _innovate,
     _masked,
     _predict_args,
     _process_noise,
+    _quaternion_innovation,
     _quaternion_args,
     _record,
     _scan,
@@ -76,6 +78,18 @@ def _predict(q, bias, p, gyro, dt, gyro_noise, bias_noise, kappa):
     return _multiply(centre, _from_rotvec(mean[:3])), bias + mean[3:], p
 
 
+def _unscented_update(q, bias, p, offsets, w, z, measured, r_diag):
+    """The update from the points' predicted measurements ``z`` (13, k) against ``measured`` (k,):
+    ``P_zz`` (plus ``diag(r_diag)``), ``P_xz``, then the MEKF's gain and reset; ``P <- P - K P_zz K^T``."""
+    z_mean = w @ z
+    dz = z - z_mean[None, :]
+    pzz = _symmetric((dz * w[:, None]).T @ dz + jnp.diag(r_diag))
+    pxz = (offsets * w[:, None]).T @ dz
+    residual = measured - z_mean
+    gain, q, bias, nis, logdet = _innovate(q, bias, pzz, pxz.T, residual)
+    return (q, bias, _symmetric(p - gain @ pzz @ gain.T)), residual, nis, logdet
+
+
 def _update_vectors(q, bias, p, body, ref, sigma, kappa):
     valid, body, ref = _masked(body, ref)
     m = body.shape[0]
@@ -83,43 +97,20 @@ def _update_vectors(q, bias, p, body, ref, sigma, kappa):
     conj = _conjugate(qs)[:, None, :]
     z = _rotate(jnp.broadcast_to(conj, (qs.shape[0], m, 4)), jnp.broadcast_to(ref, (qs.shape[0], m, 3)))
     z = (z * valid[None, :, None]).reshape(qs.shape[0], 3 * m)
-    z_mean = w @ z
-    dz = z - z_mean[None, :]
     r_diag = jnp.repeat(jnp.where(valid, sigma * sigma, 1.0), 3)
-    pzz = _symmetric((dz * w[:, None]).T @ dz + jnp.diag(r_diag))
-    pxz = (offsets * w[:, None]).T @ dz
-    residual = jnp.where(valid[:, None], body, 0.0).reshape(-1) - z_mean
-    chol = jnp.linalg.cholesky(pzz)
-    solve = jax.scipy.linalg.cho_solve
-    gain = solve((chol, True), pxz.T).T
-    dx = gain @ residual
-    p = _symmetric(p - gain @ pzz @ gain.T)
-    nis = residual @ solve((chol, True), residual)
-    logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
-    q = _multiply(q, _from_rotvec(dx[:3]))
-    return (q, bias + dx[3:], p), (residual.reshape(m, 3), nis, *_statistics(nis, logdet, valid))
+    measured = jnp.where(valid[:, None], body, 0.0).reshape(-1)
+    state, residual, nis, logdet = _unscented_update(q, bias, p, offsets, w, z, measured, r_diag)
+    return state, (residual.reshape(m, 3), nis, *_statistics(nis, logdet, valid))
 
 
 def _update_quaternion(q, bias, p, q_meas, sigma, kappa):
     # The points' predicted measurement, read in the tangent space at the estimate, is their own
     # attitude offset minus(q_i, q) = d_i: the unscented update is then exactly the linear one.
-    valid = jnp.all(jnp.isfinite(q_meas))
-    q_meas = jnp.where(valid, q_meas, q)
+    valid, measured = _quaternion_innovation(q, q_meas)
     _, _, offsets, w = _points(q, bias, p, kappa)
-    z = offsets[:, :3] * valid
-    z_mean = w @ z
-    dz = z - z_mean[None, :]
-    pzz = _symmetric((dz * w[:, None]).T @ dz + jnp.diag(jnp.full((3,), jnp.where(valid, sigma * sigma, 1.0))))
-    pxz = (offsets * w[:, None]).T @ dz
-    residual = jnp.where(valid, _to_rotvec(_multiply(_conjugate(q), q_meas)), 0.0) - z_mean
-    chol = jnp.linalg.cholesky(pzz)
-    solve = jax.scipy.linalg.cho_solve
-    gain = solve((chol, True), pxz.T).T
-    dx = gain @ residual
-    p = _symmetric(p - gain @ pzz @ gain.T)
-    nis = residual @ solve((chol, True), residual)
-    logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
-    return (_multiply(q, _from_rotvec(dx[:3])), bias + dx[3:], p), (residual[None], nis, *_statistics(nis, logdet, valid))
+    r_diag = jnp.full((3,), jnp.where(valid, sigma * sigma, 1.0))
+    state, residual, nis, logdet = _unscented_update(q, bias, p, offsets, w, offsets[:, :3] * valid, measured, r_diag)
+    return state, (residual[None], nis, *_statistics(nis, logdet, valid))
 
 
 def _kappa(kappa: float) -> float:
