@@ -124,10 +124,11 @@ class ReactionWheelSpacecraft(eqx.Module):
         if axes.ndim != 2 or axes.shape[1] != 3 or axes.shape[0] < 1:
             raise ValueError(f"argument 'axes' must be the wheels' spin axes shaped (n, 3), n >= 1, got shape "
                              f"{tuple(axes.shape)}")
-        lengths = _checks.concrete(jnp.linalg.norm(axes, axis=-1))
+        norms = jnp.linalg.norm(axes, axis=-1, keepdims=True)
+        lengths = _checks.concrete(norms[:, 0])
         if lengths is not None and not (lengths > 0).all():
             raise ValueError(f"argument 'axes' must be nonzero spin axes, got rows of length {lengths.tolist()}")
-        self.axes = axes / jnp.linalg.norm(axes, axis=-1, keepdims=True)
+        self.axes = axes / norms
         self.control = _control(control)
         self.wheel_torque_limit = None if wheel_torque_limit is None else _limit(wheel_torque_limit,
                                                                                    "wheel_torque_limit", axes)
