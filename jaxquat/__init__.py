@@ -9,8 +9,9 @@ Each module's ``__all__`` is its public surface; the package re-exports them all
 """
 
 from . import (
-    algebra, conversions, determination, dynamics, elliptic, euler, fixed_step, geometry, inertia, interpolate, kinematics, lie,
-    lie_solvers, mekf as _mekf_module, models, rigid_body, simulate as _simulate_module, skew, spline, splitting, tangent, time_optimal, torque_free,
+    algebra, conversions, determination, dynamics, elliptic, euler, fixed_step, geometry, inertia, interior_point, interpolate,
+    kinematics, lie,
+    lie_solvers, mekf as _mekf_module, models, optimal_control, rigid_body, simulate as _simulate_module, skew, spline, splitting, tangent, time_optimal, torque_free,
     torques, ukf as _ukf_module,
 )
 from .algebra import *  # noqa: F401,F403
@@ -22,12 +23,14 @@ from .euler import *  # noqa: F401,F403
 from .geometry import *  # noqa: F401,F403
 from .inertia import *  # noqa: F401,F403
 from .fixed_step import *  # noqa: F401,F403
+from .interior_point import *  # noqa: F401,F403
 from .interpolate import *  # noqa: F401,F403
 from .kinematics import *  # noqa: F401,F403
 from .lie import *  # noqa: F401,F403
 from .lie_solvers import *  # noqa: F401,F403
 from .mekf import *  # noqa: F401,F403
 from .models import *  # noqa: F401,F403
+from .optimal_control import *  # noqa: F401,F403
 from .rigid_body import *  # noqa: F401,F403
 from .simulate import *  # noqa: F401,F403
 from .skew import *  # noqa: F401,F403
@@ -63,6 +66,8 @@ __all__ = [
     *splitting.__all__,
     *fixed_step.__all__,
     *_simulate_module.__all__,
+    *interior_point.__all__,
+    *optimal_control.__all__,
     *time_optimal.__all__,
     *determination.__all__,
     *_mekf_module.__all__,

@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import NamedTuple
+from typing import NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
@@ -58,6 +58,7 @@ from .inertia import _validated
 from .fixed_step import solve_fixed_steps
 from .lie import minus
 from .lie_solvers import RKMK4, BodyRateTerm
+from .optimal_control import constrained_minimum_time
 
 __all__ = ["Reorientation", "minimum_time_reorientation"]
 
@@ -325,7 +326,10 @@ def minimum_time_reorientation(
     refine: int = 20,
     progress: bool = False,
     throw: bool = True,
-) -> Reorientation:
+    rate_bound: float | None = None,
+    keep_out: Sequence = (),
+    method: str = "auto",
+):
     """Shortest time ``T`` and bounded body torque taking ``(q0, omega0)`` to ``(qf, omegaf)``.
 
     Minimises ``T`` subject to ``q' = 1/2 q (0, w)``, ``I w' = u - w x I w``
@@ -351,7 +355,26 @@ def minimum_time_reorientation(
     are jitted); use float64 (``jax_enable_x64``) for tight terminal conditions.
     The discrete optimum approaches the continuous one from above as ``intervals``
     grows; compare two discretisations to see how far it has converged.
+
+    Constraints beyond the torque bound: ``rate_bound`` (``|w_i| <= rate_bound``) and
+    ``keep_out`` (``(body_axis (3,), inertial_direction (3,), half_angle_rad)`` triples) are
+    handled by direct multiple shooting with the interior-point method of
+    :func:`jaxquat.constrained_minimum_time` (``intervals``, ``substeps`` and ``throw`` carry
+    over; it converges to a KKT error of 1e-9 whatever ``tol``; ``starts``, ``seed``, ``init``,
+    ``outer``, ``inner``, ``mu``, ``refine`` and ``progress`` do not apply), which returns a :class:`jaxquat.ConstrainedReorientation` with
+    the same ``time``, ``ts``, ``q``, ``omega``, ``torque``, ``controls`` and ``violation``
+    fields. ``method``: ``"auto"`` (that solver when a rate bound or a cone is given, this
+    module's otherwise), ``"interior_point"`` or ``"single_shooting"``.
     """
+    if method not in ("auto", "interior_point", "single_shooting"):
+        raise ValueError(f"argument 'method' must be 'auto', 'interior_point' or 'single_shooting', got {method!r}")
+    constrained = rate_bound is not None or len(keep_out) > 0
+    if method == "single_shooting" and constrained:
+        raise ValueError("method='single_shooting' handles torque bounds only; rate_bound and keep_out need "
+                         "method='interior_point' (or 'auto')")
+    if method == "interior_point" or (method == "auto" and constrained):
+        return constrained_minimum_time(inertia, torque_bound, q0, qf, omega0, omegaf, rate_bound=rate_bound,
+                                        keep_out=keep_out, intervals=intervals, substeps=substeps, throw=throw)
     inertia = _validated(inertia)
     if inertia.shape != (3, 3):
         raise ValueError(f"argument 'inertia' must be shaped (3, 3), got shape {tuple(inertia.shape)}")

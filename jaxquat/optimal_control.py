@@ -1,0 +1,394 @@
+"""Constrained attitude optimal control of a rigid body by direct multiple shooting.
+
+Unknowns: the node states ``x_k = (q_k, w_k)`` (``k = 1 .. N``), a body torque held constant on
+each of ``N`` equal intervals, and (minimum time) the final time. Each interval is integrated
+by ``substeps`` RKMK4 steps (:mod:`jaxquat.lie_solvers`, ``|q|`` kept to rounding), and its end
+must meet the next node (the continuity defects). The NLP is solved by the primal-dual
+interior-point method of :mod:`jaxquat.interior_point` with exact second derivatives.
+
+Constraints: per-axis torque bounds ``|u_i| <= b_i``; body-rate bounds ``|w_i| <= w_max``;
+keep-out cones (body axis ``a`` stays at least ``alpha`` from the inertial direction ``s``:
+``s . R(q) a <= cos(alpha)``, with ``R(q) a`` the inertial image of the body axis); rate and cone
+constraints hold at every integration step (every substep's end state), not only at the nodes.
+Terminal conditions: ``vec(qf* q_N) = 0`` (so ``q_N = +-qf``) and ``w_N = omegaf``.
+
+Scaling (the method is not scale invariant; both Bilimoria-Wie's unit body and Betts' 5000
+kg m^2 spacecraft are solved with the same settings): torques are divided by the bound
+(or, without one, by the eigenaxis profile's peak torque), rates by the eigenaxis profile's peak
+rate, the time by the eigenaxis reference time.
+
+Initial guess: the eigenaxis rotation from ``q0`` to ``qf`` (bang-bang for minimum time, the
+cubic minimum-energy profile otherwise), with the boundary rates blended in linearly; its
+torque ``I a + w x I w`` is clipped to 90 % of the bound. The nodes need not be continuous: the
+solver closes the defects.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jaxtyping import Float
+
+from . import _checks
+from .algebra import _conjugate, _multiply, _rotate
+from .dynamics import _euler_body
+from .fixed_step import solve_fixed_steps
+from .inertia import _validated
+from .interior_point import ShootingProblem, solve_shooting
+from .lie import minus, plus
+from .lie_solvers import RKMK4, BodyRateTerm
+
+__all__ = ["ConstrainedReorientation", "minimum_energy_reorientation", "constrained_minimum_time"]
+
+
+class ConstrainedReorientation(NamedTuple):
+    """Result of the multiple-shooting solvers (body frame throughout).
+
+    ``time`` the final time; ``ts`` ``(N * substeps + 1,)`` the integration grid; ``q``, ``omega``
+    the trajectory on it, re-integrated from ``q0`` with the returned torque (not the nodes);
+    ``torque`` ``(len(ts), 3)`` (the last row repeats); ``controls`` ``(N, 3)`` the torque per
+    interval; ``violation`` the largest constraint violation of the NLP (defects, terminal
+    conditions, path constraints); ``cost`` the objective (the time, or ``int |u|^2 dt``);
+    ``costates`` ``(N, 7)`` the multipliers of the continuity conditions, in the NLP's scaled
+    units (the discrete costates of ``(q, w)``); ``switching`` ``(N, 3)`` the discrete switching
+    function ``d(costate . F)/du`` per unit torque; ``kkt_residual``; ``iterations``; ``converged``.
+    """
+
+    time: Array
+    ts: Array
+    q: Array
+    omega: Array
+    torque: Array
+    controls: Array
+    violation: Array
+    cost: Array
+    costates: Array
+    switching: Array
+    kkt_residual: Array
+    iterations: Array
+    converged: Array
+
+
+_PERTURBATION = 0.2  # scaled torque perturbation of the initial guess
+
+
+class _Data(NamedTuple):
+    inertia: Array
+    q0: Array
+    w0: Array
+    qf: Array
+    wf: Array
+    duration: Array  # the fixed time, or the reference time T_ref (minimum time)
+    u_ref: Array  # (3,) torque scale
+    w_ref: Array  # rate scale
+    bound: Array  # (3,) torque bound (inf: none)
+    rate_bound: Array  # (inf: none)
+    cones: Array  # (n, 7): body axis, inertial direction, cos(half angle)
+
+
+class _Config(NamedTuple):
+    intervals: int
+    substeps: int
+    min_time: bool
+    torque_bounded: bool
+    rate_bounded: bool
+    n_cones: int
+
+
+def _integrate(data: _Data, q, w, u, h, substeps: int):
+    """``substeps`` RKMK4 steps (:func:`jaxquat.solve_fixed_steps`); the states at every step."""
+
+    def field(t, y, uu):
+        return y[1], _euler_body(data.inertia, y[1], uu)
+
+    ts = jnp.linspace(0.0, 1.0, substeps + 1, dtype=w.dtype) * h
+    return solve_fixed_steps(RKMK4(), BodyRateTerm(field), ts, (q, w), u, checkpoint=False)
+
+
+def _path(cfg: _Config, data: _Data, qs, ws, v, p, k):
+    """Path constraints ``<= 0`` of one interval, at every substep's end state."""
+    parts = []
+    if cfg.torque_bounded:
+        parts += [v - 1.0, -v - 1.0]
+    if cfg.rate_bounded:
+        r = ws / data.rate_bound
+        parts += [(r - 1.0).ravel(), (-r - 1.0).ravel()]
+    if cfg.n_cones:
+        qn = qs / jnp.linalg.norm(qs, axis=-1, keepdims=True)
+        axes = jax.vmap(lambda c: jax.vmap(lambda qq: _rotate(qq, c[:3]))(qn))(data.cones)  # (n, substeps, 3)
+        parts.append((jnp.einsum("csi,ci->cs", axes, data.cones[:, 3:6]) - data.cones[:, 6:7]).ravel())
+    if cfg.min_time:
+        # T >= T_ref / 20, in the first stage only (each copy would add its own barrier term).
+        parts.append(jnp.reshape(jnp.where(k == 0, 0.05 - p[0], -1.0), (1,)))
+    if not parts:
+        return jnp.zeros((0,), qs.dtype)
+    return jnp.concatenate(parts)
+
+
+def _problem(cfg: _Config) -> ShootingProblem:
+    def duration(p, data):
+        return data.duration * p[0] if cfg.min_time else data.duration
+
+    def stage(x, v, p, data, k):
+        h = duration(p, data) / cfg.intervals
+        u = data.u_ref * v
+        qs, ws = _integrate(data, x[:4], x[4:] * data.w_ref, u, h, cfg.substeps)
+        x_next = jnp.concatenate([qs[-1], ws[-1] / data.w_ref])
+        cost = jnp.zeros((), x.dtype) if cfg.min_time else h * jnp.sum(u * u) / (
+            jnp.sum(data.u_ref ** 2) * data.duration)
+        return x_next, cost, _path(cfg, data, qs[1:], ws[1:], v, p, k)
+
+    def terminal(xN, data):
+        return jnp.concatenate([_multiply(_conjugate(data.qf), xN[:4])[1:], xN[4:] - data.wf / data.w_ref])
+
+    def objective(p, data):
+        return p[0] if cfg.min_time else jnp.zeros((), p.dtype)
+
+    return ShootingProblem(stage, terminal, objective)
+
+
+_PROBLEMS: dict = {}
+
+
+def _cached_problem(cfg: _Config) -> ShootingProblem:
+    # One ShootingProblem per configuration: jit hashes the static functions by identity.
+    if cfg not in _PROBLEMS:
+        _PROBLEMS[cfg] = _problem(cfg)
+    return _PROBLEMS[cfg]
+
+
+def _guess(cfg: _Config, data: _Data, t_guess):
+    """The eigenaxis initial guess: nodes ``(N, 7)``, scaled controls ``(N, 3)``."""
+    N = cfg.intervals
+    dtype = data.q0.dtype
+    rotvec = minus(data.qf, data.q0)
+    s = jnp.arange(1, N + 1, dtype=dtype) / N
+    sm = (jnp.arange(N, dtype=dtype) + 0.5) / N
+    if cfg.min_time:
+        shape = jnp.where(s < 0.5, 2 * s * s, 1 - 2 * (1 - s) ** 2)
+        rate = jnp.where(sm < 0.5, 4 * sm, 4 * (1 - sm))
+        accel = jnp.where(sm < 0.5, 4.0, -4.0)
+        rate_n = jnp.where(s < 0.5, 4 * s, 4 * (1 - s))
+    else:
+        shape = 3 * s * s - 2 * s ** 3
+        rate = 6 * sm * (1 - sm)
+        accel = 6 - 12 * sm
+        rate_n = 6 * s * (1 - s)
+    qs = jax.vmap(lambda a: plus(data.q0, a * rotvec))(shape)
+    qs = qs.at[-1].set(data.qf)
+    ws = rate_n[:, None] * rotvec[None] / t_guess + (1 - s)[:, None] * data.w0[None] + s[:, None] * data.wf[None]
+    wm = rate[:, None] * rotvec[None] / t_guess + (1 - sm)[:, None] * data.w0[None] + sm[:, None] * data.wf[None]
+    am = accel[:, None] * rotvec[None] / t_guess ** 2 + (data.wf - data.w0)[None] / t_guess
+    u = jax.vmap(lambda w, a: data.inertia @ a + jnp.cross(w, data.inertia @ w))(wm, am)
+    v = u / data.u_ref[None]
+    # A fixed perturbation: on the eigenaxis profile itself the off-axis derivatives vanish,
+    # and for symmetric bodies it is a saddle point that Newton's method would converge to.
+    v = v + _PERTURBATION * jax.random.normal(jax.random.PRNGKey(0), v.shape, dtype)
+    v = jnp.clip(v, -0.9, 0.9) if cfg.torque_bounded else v
+    return jnp.concatenate([qs, ws / data.w_ref], axis=1), v
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "max_iter"))
+def _solve(data: _Data, cfg: _Config, tol, max_iter: int):
+    problem = _cached_problem(cfg)
+    X, V = _guess(cfg, data, data.duration)
+    x0 = jnp.concatenate([data.q0, data.w0 / data.w_ref])
+    p = jnp.ones((1,), X.dtype) if cfg.min_time else jnp.zeros((0,), X.dtype)
+    sol = solve_shooting(problem, x0, X, V, p, data, tol=tol, max_iter=max_iter)
+    T = data.duration * sol.p[0] if cfg.min_time else data.duration
+    u = sol.u * data.u_ref[None]
+    h = T / cfg.intervals
+    # The trajectory, re-integrated from q0 with the returned torque on one flat grid.
+    N, m = cfg.intervals, cfg.substeps
+    ts = jnp.linspace(0.0, 1.0, N * m + 1, dtype=X.dtype) * T
+    qs, ws = solve_fixed_steps(RKMK4(), BodyRateTerm(lambda t, y, uu: (y[1], _euler_body(data.inertia, y[1], uu))),
+                               ts, (data.q0, data.w0), substeps=1, interval_args=jnp.repeat(u, m, axis=0),
+                               checkpoint=False)
+
+    def lam_dot_f(uu, x, y):
+        qn, wn = _integrate(data, x[:4], x[4:] * data.w_ref, uu, h, m)
+        return y @ jnp.concatenate([qn[-1], wn[-1] / data.w_ref])
+
+    switching = jax.vmap(jax.grad(lam_dot_f))(u, sol.x[:-1], sol.costates)
+    cost = sol.p[0] * data.duration if cfg.min_time else sol.objective * jnp.sum(data.u_ref ** 2) * data.duration
+    torque = jnp.concatenate([jnp.repeat(u, m, axis=0), u[-1:]])
+    return ConstrainedReorientation(T, ts, qs, ws, torque, u, sol.violation, cost, sol.costates, switching, sol.kkt,
+                                    sol.iterations, sol.converged)
+
+
+def _cones(keep_out, dtype) -> np.ndarray:
+    rows = []
+    for i, cone in enumerate(keep_out):
+        try:
+            axis, direction, half = cone
+        except (TypeError, ValueError):
+            raise ValueError(f"keep_out[{i}] must be (body_axis (3,), inertial_direction (3,), half_angle_rad), "
+                             f"got {cone!r}") from None
+        axis, direction = np.asarray(axis, np.float64), np.asarray(direction, np.float64)
+        half = float(half)
+        if axis.shape != (3,) or direction.shape != (3,):
+            raise ValueError(f"keep_out[{i}]: body_axis and inertial_direction must be shaped (3,), "
+                             f"got {axis.shape} and {direction.shape}")
+        if not (np.linalg.norm(axis) > 0 and np.linalg.norm(direction) > 0 and 0 < half < np.pi):
+            raise ValueError(f"keep_out[{i}]: the axes must be non-zero and 0 < half_angle_rad < pi, got {cone!r}")
+        rows.append(np.concatenate([axis / np.linalg.norm(axis), direction / np.linalg.norm(direction),
+                                    [np.cos(half)]]))
+    return np.asarray(rows, np.float64).reshape(-1, 7).astype(dtype)
+
+
+def _prepare(inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out):
+    """Validated, batch-broadcast arrays (shape errors name the argument)."""
+    inertia = _validated(inertia)
+    if inertia.shape != (3, 3):
+        raise ValueError(f"argument 'inertia' must be shaped (3, 3), got shape {tuple(inertia.shape)}")
+    q0 = _checks.quat(q0, "q0")
+    qf = _checks.quat(qf, "qf")
+    dtype = q0.dtype
+    w0 = jnp.zeros(3, dtype) if omega0 is None else _checks.vec3(omega0, "omega0")
+    wf = jnp.zeros(3, dtype) if omegaf is None else _checks.vec3(omegaf, "omegaf")
+    q0, qf, w0, wf = _checks.broadcast_batch([q0, qf, w0, wf], ["q0", "qf", "omega0", "omegaf"], [1, 1, 1, 1])
+    for name, x in (("q0", q0), ("qf", qf), ("omega0", w0), ("omegaf", wf)):
+        c = _checks.concrete(x)
+        if c is not None and not np.all(np.isfinite(c)):
+            raise ValueError(f"argument '{name}' must be finite")
+    bound = None
+    if torque_bound is not None:
+        bound = _checks.vec3(torque_bound, "torque_bound")
+        c = _checks.concrete(bound)
+        if bound.ndim != 1 or (c is not None and not (np.all(c > 0) and np.all(np.isfinite(c)))):
+            raise ValueError(f"argument 'torque_bound' must be shaped (3,), positive and finite, got {c}")
+    if rate_bound is not None:
+        rate_bound = float(rate_bound)
+        if not (rate_bound > 0 and np.isfinite(rate_bound)):
+            raise ValueError(f"argument 'rate_bound' must be a positive finite float, got {rate_bound}")
+    cones = _cones(keep_out, np.dtype(dtype))
+    q0 = q0 / jnp.linalg.norm(q0, axis=-1, keepdims=True)
+    qf = qf / jnp.linalg.norm(qf, axis=-1, keepdims=True)
+    return jnp.asarray(inertia, dtype), q0, qf, w0, wf, bound, rate_bound, cones
+
+
+def _run(cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, bound, rate_bound, cones, tol, max_iter, throw):
+    dtype = q0.dtype
+    batch = q0.shape[:-1]
+    inf = jnp.asarray(jnp.inf, dtype)
+
+    def data_of(q0_, qf_, w0_, wf_, dur, ur, wr):
+        return _Data(inertia, q0_, w0_, qf_, wf_, dur, ur, wr, inf * jnp.ones(3, dtype) if bound is None else bound,
+                     inf if rate_bound is None else jnp.asarray(rate_bound, dtype), jnp.asarray(cones, dtype))
+
+    flat = [jnp.reshape(a, (-1,) + a.shape[len(batch):]) for a in (q0, qf, w0, wf, duration, u_ref, w_ref)]
+    data = jax.vmap(data_of)(*flat)
+    out = jax.vmap(lambda d: _solve(d, cfg, tol, max_iter))(data)
+    out = jax.tree.map(lambda a: jnp.reshape(a, batch + a.shape[1:]), out)
+    if throw and not isinstance(out.violation, jax.core.Tracer):
+        bad = ~np.asarray(out.converged)
+        if np.any(bad):
+            raise RuntimeError(
+                f"{'minimum time' if cfg.min_time else 'minimum energy'} reorientation: the interior-point method did "
+                f"not converge for {int(bad.sum())} of {bad.size} problems (largest KKT residual "
+                f"{float(np.max(np.asarray(out.kkt_residual)[bad])):.3g}, violation "
+                f"{float(np.max(np.asarray(out.violation)[bad])):.3g}). Try more intervals, max_iter, or a smaller "
+                "tol; check that the constraints admit a solution. Pass throw=False to get the last iterate.")
+    return out
+
+
+def _scales(inertia, q0, qf, w0, wf, duration_or_bound, min_time: bool):
+    """Per-problem time, torque and rate scales from the eigenaxis profile."""
+    theta = jnp.linalg.norm(minus(qf, q0), axis=-1)
+    axis = minus(qf, q0) / jnp.maximum(theta, 1e-12)[..., None]
+    axis = jnp.where(theta[..., None] > 1e-12, axis, jnp.asarray([1.0, 0.0, 0.0], q0.dtype))
+    dw = jnp.linalg.norm(wf - w0, axis=-1)
+    if min_time:
+        bound = duration_or_bound
+        need = jnp.abs(jnp.einsum("ij,...j->...i", inertia, axis))
+        bound = jnp.broadcast_to(bound, need.shape)
+        accel = jnp.min(jnp.where(need > 1e-12, bound / jnp.maximum(need, 1e-300), jnp.inf), axis=-1)
+        T = 2 * jnp.sqrt(theta / accel) + dw / accel
+        T = jnp.where(T > 0, T, 1.0)
+        u_ref = jnp.broadcast_to(bound, q0.shape[:-1] + (3,))
+    else:
+        T = jnp.broadcast_to(jnp.asarray(duration_or_bound, q0.dtype), q0.shape[:-1])
+        peak = jnp.linalg.norm(jnp.einsum("ij,...j->...i", inertia, axis), axis=-1) * 6 * theta / T ** 2 \
+            + jnp.max(jnp.abs(inertia)) * dw / T
+        u_ref = jnp.broadcast_to(jnp.where(peak > 0, peak, 1.0)[..., None], q0.shape[:-1] + (3,))
+    rate = jnp.maximum(jnp.maximum(2 * theta / T, jnp.linalg.norm(w0, axis=-1)), jnp.linalg.norm(wf, axis=-1))
+    return T, u_ref, jnp.where(rate > 0, rate, 1.0)
+
+
+def minimum_energy_reorientation(
+    inertia: Float[Array, "3 3"],
+    q0: Float[Array, "*batch 4"],
+    qf: Float[Array, "*batch 4"],
+    duration: float,
+    omega0: Float[Array, "*batch 3"] | None = None,
+    omegaf: Float[Array, "*batch 3"] | None = None,
+    *,
+    torque_bound: Float[Array, "3"] | None = None,
+    rate_bound: float | None = None,
+    keep_out: Sequence = (),
+    intervals: int = 40,
+    substeps: int = 4,
+    tol: float = 1e-9,
+    max_iter: int = 200,
+    throw: bool = True,
+) -> ConstrainedReorientation:
+    """Least ``int_0^T |u|^2 dt`` taking ``(q0, omega0)`` to ``(qf, omegaf)`` in the fixed time ``duration``.
+
+    Dynamics ``q' = 1/2 q (0, w)``, ``I w' = u - w x I w`` (body frame, [S] eqs. (16), (19));
+    the torque ``u`` is held constant on ``intervals`` equal pieces. Constraints (each
+    optional): ``|u_i| <= torque_bound[i]``; ``|w_i| <= rate_bound`` at every integration
+    step; ``keep_out``: ``(body_axis, inertial_direction, half_angle_rad)`` triples, the body
+    axis's inertial image ``R(q) a`` staying at least the half angle away from the direction at
+    every integration step. Terminal: ``q(T) = +-qf``, ``w(T) = omegaf`` (rates default to rest).
+    Direct multiple shooting solved by a primal-dual interior-point method (module docstring);
+    leading batch axes on ``q0``, ``qf``, ``omega0``, ``omegaf`` solve in one compiled call.
+    ``q0``/``qf`` are normalised. Raises ``RuntimeError`` if a problem does not converge to ``tol``
+    (the scaled KKT error) within ``max_iter`` iterations, unless ``throw=False``. Use float64."""
+    if not isinstance(intervals, int) or intervals < 2 or not isinstance(substeps, int) or substeps < 1:
+        raise ValueError("need intervals >= 2 and substeps >= 1 (ints)")
+    duration = float(duration)
+    if not (duration > 0 and np.isfinite(duration)):
+        raise ValueError(f"argument 'duration' must be a positive finite float, got {duration}")
+    inertia, q0, qf, w0, wf, bound, rate_bound, cones = _prepare(inertia, q0, qf, omega0, omegaf, torque_bound,
+                                                                 rate_bound, keep_out)
+    T, u_ref, w_ref = _scales(inertia, q0, qf, w0, wf, duration, min_time=False)
+    if bound is not None:
+        u_ref = jnp.broadcast_to(bound, u_ref.shape)
+    cfg = _Config(intervals, substeps, False, bound is not None, rate_bound is not None, len(cones))
+    return _run(cfg, inertia, q0, qf, w0, wf, T, u_ref, w_ref, bound, rate_bound, cones, tol, max_iter, throw)
+
+
+def constrained_minimum_time(
+    inertia: Float[Array, "3 3"],
+    torque_bound: Float[Array, "3"],
+    q0: Float[Array, "*batch 4"],
+    qf: Float[Array, "*batch 4"],
+    omega0: Float[Array, "*batch 3"] | None = None,
+    omegaf: Float[Array, "*batch 3"] | None = None,
+    *,
+    rate_bound: float | None = None,
+    keep_out: Sequence = (),
+    intervals: int = 40,
+    substeps: int = 4,
+    tol: float = 1e-9,
+    max_iter: int = 200,
+    throw: bool = True,
+) -> ConstrainedReorientation:
+    """Least final time ``T`` taking ``(q0, omega0)`` to ``(qf, omegaf)`` with ``|u_i| <= torque_bound[i]``.
+
+    The same transcription, constraints and batching as :func:`minimum_energy_reorientation`,
+    with ``T`` an unknown (``T >= T_ref / 20``, ``T_ref`` the eigenaxis bang-bang time).
+    :func:`jaxquat.minimum_time_reorientation` calls this when given ``rate_bound`` or
+    ``keep_out`` (or ``method="interior_point"``)."""
+    if not isinstance(intervals, int) or intervals < 2 or not isinstance(substeps, int) or substeps < 1:
+        raise ValueError("need intervals >= 2 and substeps >= 1 (ints)")
+    inertia, q0, qf, w0, wf, bound, rate_bound, cones = _prepare(inertia, q0, qf, omega0, omegaf, torque_bound,
+                                                                 rate_bound, keep_out)
+    T, u_ref, w_ref = _scales(inertia, q0, qf, w0, wf, bound, min_time=True)
+    cfg = _Config(intervals, substeps, True, True, rate_bound is not None, len(cones))
+    return _run(cfg, inertia, q0, qf, w0, wf, T, u_ref, w_ref, bound, rate_bound, cones, tol, max_iter, throw)
