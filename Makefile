@@ -30,7 +30,10 @@ demo: $(STAMP)
 # A persistent compilation cache made new for each run (never kept between runs) lets the
 # example and notebook subprocesses reuse what the test workers compiled (and vice versa).
 PYTEST := $(PY) -m pytest -n 2 --dist loadfile
-CACHED := cache=$$(mktemp -d) && trap 'rm -rf "$$cache"' EXIT && export JAX_COMPILATION_CACHE_DIR="$$cache" &&
+# Every compilation is cached, not only those over JAX's default 1 s: the two workers and the
+# subprocesses compile many of the same small functions.
+CACHED := cache=$$(mktemp -d) && trap 'rm -rf "$$cache"' EXIT && export JAX_COMPILATION_CACHE_DIR="$$cache" \
+	JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0 &&
 
 test: $(STAMP)
 	$(CACHED) JAX_ENABLE_X64=1 $(PYTEST) && JAX_ENABLE_X64=0 $(PYTEST)

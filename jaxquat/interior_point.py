@@ -20,8 +20,7 @@ continuity ``dx_{k+1} = A_k dx_k + B_k du_k + C_k dp + d_k`` is eliminated by a 
 recursion, leaving a dense problem in ``(du, dp)`` (``N nu + np`` unknowns) with only the
 terminal conditions as constraints; that one is solved by the null-space method, and the
 reduced Hessian's eigenvalues are replaced by their absolute values (at least
-``1e-8`` of the largest) where it is not positive definite, so every step is a descent
-direction (the inertia correction; a strict local minimum has a positive definite reduced
+``max(1e-8, 100 eps max|eigenvalue|)``), so every step is a descent direction (the inertia correction; a strict local minimum has a positive definite reduced
 Hessian, where this changes nothing and Newton converges quadratically). The continuity
 multipliers (the discrete costates) come from the backward recursion. Steps keep
 ``s, lambda > 0`` by the fraction-to-the-boundary rule and are accepted by a filter line
@@ -104,7 +103,7 @@ _KAPPA_EPS = 10.0  # barrier problem solved when its error <= 10 mu
 _GAMMA = 1e-5  # filter margins (gamma_theta = gamma_phi)
 _ETA = 1e-4  # Armijo constant
 _DEBUG = False  # print one line per iteration (jax.debug.print)
-_EIG_FLOOR = 1e-4  # reduced-Hessian eigenvalues below it are raised to it (singular directions)
+_EIG_FLOOR = 1e-8  # reduced-Hessian eigenvalues below it (or below 100 eps |H|) are raised to it
 
 
 def _split(z, nx, nu):
