@@ -53,6 +53,7 @@ bench: $(BENCH_STAMP)
 	$(PY) benchmarks/ops.py --write docs/benchmarks.md
 	$(PY) benchmarks/simulation.py --write docs/benchmarks.md
 	$(PY) benchmarks/estimation.py --write docs/benchmarks.md
+	$(PY) benchmarks/optimal_control.py --write docs/benchmarks.md
 
 clean:
 	rm -rf $(VENV) .pytest_cache .hypothesis
