@@ -241,6 +241,12 @@ def _cones(keep_out, dtype) -> np.ndarray:
     return np.asarray(rows, np.float64).reshape(-1, 7).astype(dtype)
 
 
+def _check_grid(intervals, substeps) -> None:
+    if not isinstance(intervals, int) or intervals < 2 or not isinstance(substeps, int) or substeps < 1:
+        raise ValueError(f"need intervals >= 2 and substeps >= 1 (ints), got intervals={intervals!r}, "
+                         f"substeps={substeps!r}")
+
+
 def _prepare(inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out):
     """Validated, batch-broadcast arrays (shape errors name the argument)."""
     inertia = _validated(inertia)
@@ -349,8 +355,7 @@ def minimum_energy_reorientation(
     leading batch axes on ``q0``, ``qf``, ``omega0``, ``omegaf`` solve in one compiled call.
     ``q0``/``qf`` are normalised. Raises ``RuntimeError`` if a problem does not converge to ``tol``
     (the scaled KKT error) within ``max_iter`` iterations, unless ``throw=False``. Use float64."""
-    if not isinstance(intervals, int) or intervals < 2 or not isinstance(substeps, int) or substeps < 1:
-        raise ValueError("need intervals >= 2 and substeps >= 1 (ints)")
+    _check_grid(intervals, substeps)
     duration = float(duration)
     if not (duration > 0 and np.isfinite(duration)):
         raise ValueError(f"argument 'duration' must be a positive finite float, got {duration}")
@@ -385,8 +390,7 @@ def constrained_minimum_time(
     with ``T`` an unknown (``T >= T_ref / 20``, ``T_ref`` the eigenaxis bang-bang time).
     :func:`jaxquat.minimum_time_reorientation` calls this when given ``rate_bound`` or
     ``keep_out`` (or ``method="interior_point"``)."""
-    if not isinstance(intervals, int) or intervals < 2 or not isinstance(substeps, int) or substeps < 1:
-        raise ValueError("need intervals >= 2 and substeps >= 1 (ints)")
+    _check_grid(intervals, substeps)
     inertia, q0, qf, w0, wf, bound, rate_bound, cones = _prepare(inertia, q0, qf, omega0, omegaf, torque_bound,
                                                                  rate_bound, keep_out)
     T, u_ref, w_ref = _scales(inertia, q0, qf, w0, wf, bound, min_time=True)
