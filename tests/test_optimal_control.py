@@ -15,7 +15,7 @@ import pytest
 from scipy.optimize import minimize
 
 import jaxquat as jq
-from helpers import X64
+from helpers import X64, run_example_in_process
 
 pytestmark = pytest.mark.skipif(not X64, reason="the interior-point method converges to 1e-9 in float64 only")
 
@@ -149,6 +149,21 @@ def test_constraints_cost_energy(constrained_energy, free_energy):
     """The constrained slew (3 s) costs more than the unconstrained eigenaxis one would
     (12 theta^2 / T^3 at T = 3 is a lower bound for any held-torque slew)."""
     assert float(constrained_energy.cost) > 12 * (np.pi / 2) ** 2 / 27
+
+
+def test_sun_avoidance_example(constrained_energy, tmp_path):
+    """The example solves the fixture's problem (same configuration, so it reuses the compiled
+    solver in this process) and reports the constraints on a 10x finer re-simulation."""
+    import re
+
+    text = run_example_in_process("examples/sun_avoidance.py", "--out", str(tmp_path))
+    assert "converged True" in text, text
+    sep = float(re.search(r"least Sun angle ([\d.]+) deg", text).group(1))
+    rate = float(re.search(r"max rate ([\d.]+) rad/s", text).group(1))
+    assert 20.0 - 1e-2 < sep < 20.0 + 1e-2, text  # the cone binds and holds
+    assert rate <= 0.7 * (1 + 1e-4), text
+    assert float(re.search(r"energy ([\d.]+)", text).group(1)) == pytest.approx(float(constrained_energy.cost), rel=1e-9)
+    assert (tmp_path / "sun_avoidance.png").stat().st_size > 10_000
 
 
 # ------------------------------------------------------------------ minimum time
