@@ -43,7 +43,8 @@ from .interior_point import ShootingProblem, solve_shooting
 from .lie import minus, plus
 from .lie_solvers import RKMK4, BodyRateTerm
 
-__all__ = ["ConstrainedReorientation", "minimum_energy_reorientation", "constrained_minimum_time"]
+__all__ = ["ConstrainedReorientation", "minimum_energy_reorientation", "minimum_fuel_reorientation",
+           "constrained_minimum_time"]
 
 
 class ConstrainedReorientation(NamedTuple):
@@ -98,6 +99,7 @@ class _Config(NamedTuple):
     torque_bounded: bool
     rate_bounded: bool
     n_cones: int
+    fuel: bool = False  # objective int |u|_1 dt: controls (v, sigma) with |v_i| <= sigma_i <= 1
 
 
 def _integrate(data: _Data, q, w, u, h, substeps: int):
@@ -110,10 +112,13 @@ def _integrate(data: _Data, q, w, u, h, substeps: int):
     return solve_fixed_steps(RKMK4(), BodyRateTerm(field), ts, (q, w), u, checkpoint=False)
 
 
-def _path(cfg: _Config, data: _Data, qs, ws, v, p, k):
-    """Path constraints ``<= 0`` of one interval, at every substep's end state."""
+def _path(cfg: _Config, data: _Data, qs, ws, c, p, k):
+    """Path constraints ``<= 0`` of one interval (controls ``c``), at every substep's end state."""
     parts = []
-    if cfg.torque_bounded:
+    v = c[:3]
+    if cfg.fuel:  # |v_i| <= sigma_i <= 1: sigma is the l1 cost's epigraph variable
+        parts += [v - c[3:], -v - c[3:], c[3:] - 1.0]
+    elif cfg.torque_bounded:
         parts += [v - 1.0, -v - 1.0]
     if cfg.rate_bounded:
         r = ws / data.rate_bound
@@ -134,14 +139,18 @@ def _problem(cfg: _Config) -> ShootingProblem:
     def duration(p, data):
         return data.duration * p[0] if cfg.min_time else data.duration
 
-    def stage(x, v, p, data, k):
+    def stage(x, c, p, data, k):
         h = duration(p, data) / cfg.intervals
-        u = data.u_ref * v
+        u = data.u_ref * c[:3]
         qs, ws = _integrate(data, x[:4], x[4:] * data.w_ref, u, h, cfg.substeps)
         x_next = jnp.concatenate([qs[-1], ws[-1] / data.w_ref])
-        cost = jnp.zeros((), x.dtype) if cfg.min_time else h * jnp.sum(u * u) / (
-            jnp.sum(data.u_ref ** 2) * data.duration)
-        return x_next, cost, _path(cfg, data, qs[1:], ws[1:], v, p, k)
+        if cfg.min_time:
+            cost = jnp.zeros((), x.dtype)
+        elif cfg.fuel:
+            cost = h * jnp.sum(data.u_ref * c[3:]) / (jnp.sum(data.u_ref) * data.duration)
+        else:
+            cost = h * jnp.sum(u * u) / (jnp.sum(data.u_ref ** 2) * data.duration)
+        return x_next, cost, _path(cfg, data, qs[1:], ws[1:], c, p, k)
 
     def terminal(xN, data):
         return jnp.concatenate([_multiply(_conjugate(data.qf), xN[:4])[1:], xN[4:] - data.wf / data.w_ref])
@@ -190,6 +199,8 @@ def _guess(cfg: _Config, data: _Data, t_guess):
     # and for symmetric bodies it is a saddle point that Newton's method would converge to.
     v = v + _PERTURBATION * jax.random.normal(jax.random.PRNGKey(0), v.shape, dtype)
     v = jnp.clip(v, -0.9, 0.9) if cfg.torque_bounded else v
+    if cfg.fuel:
+        v = jnp.concatenate([v, jnp.abs(v) + 0.05], axis=1)
     return jnp.concatenate([qs, ws / data.w_ref], axis=1), v
 
 
@@ -201,7 +212,7 @@ def _solve(data: _Data, cfg: _Config, tol, max_iter: int):
     p = jnp.ones((1,), X.dtype) if cfg.min_time else jnp.zeros((0,), X.dtype)
     sol = solve_shooting(problem, x0, X, V, p, data, tol=tol, max_iter=max_iter)
     T = data.duration * sol.p[0] if cfg.min_time else data.duration
-    u = sol.u * data.u_ref[None]
+    u = sol.u[:, :3] * data.u_ref[None]
     h = T / cfg.intervals
     # The trajectory, re-integrated from q0 with the returned torque on one flat grid.
     N, m = cfg.intervals, cfg.substeps
@@ -215,7 +226,12 @@ def _solve(data: _Data, cfg: _Config, tol, max_iter: int):
         return y @ jnp.concatenate([qn[-1], wn[-1] / data.w_ref])
 
     switching = jax.vmap(jax.grad(lam_dot_f))(u, sol.x[:-1], sol.costates)
-    cost = sol.p[0] * data.duration if cfg.min_time else sol.objective * jnp.sum(data.u_ref ** 2) * data.duration
+    if cfg.min_time:
+        cost = sol.p[0] * data.duration
+    elif cfg.fuel:
+        cost = sol.objective * jnp.sum(data.u_ref) * data.duration
+    else:
+        cost = sol.objective * jnp.sum(data.u_ref ** 2) * data.duration
     torque = jnp.concatenate([jnp.repeat(u, m, axis=0), u[-1:]])
     return ConstrainedReorientation(T, ts, qs, ws, torque, u, sol.violation, cost, sol.costates, switching, sol.kkt,
                                     sol.iterations, sol.converged)
@@ -295,7 +311,7 @@ def _run(cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, bound, rate_bound
         bad = ~np.asarray(out.converged)
         if np.any(bad):
             raise RuntimeError(
-                f"{'minimum time' if cfg.min_time else 'minimum energy'} reorientation: the interior-point method did "
+                f"{'minimum time' if cfg.min_time else 'minimum fuel' if cfg.fuel else 'minimum energy'} reorientation: the interior-point method did "
                 f"not converge for {int(bad.sum())} of {bad.size} problems (largest KKT residual "
                 f"{float(np.max(np.asarray(out.kkt_residual)[bad])):.3g}, violation "
                 f"{float(np.max(np.asarray(out.violation)[bad])):.3g}). Try more intervals, max_iter, or a smaller "
@@ -365,6 +381,45 @@ def minimum_energy_reorientation(
     if bound is not None:
         u_ref = jnp.broadcast_to(bound, u_ref.shape)
     cfg = _Config(intervals, substeps, False, bound is not None, rate_bound is not None, len(cones))
+    return _run(cfg, inertia, q0, qf, w0, wf, T, u_ref, w_ref, bound, rate_bound, cones, tol, max_iter, throw)
+
+
+def minimum_fuel_reorientation(
+    inertia: Float[Array, "3 3"],
+    q0: Float[Array, "*batch 4"],
+    qf: Float[Array, "*batch 4"],
+    duration: float,
+    omega0: Float[Array, "*batch 3"] | None = None,
+    omegaf: Float[Array, "*batch 3"] | None = None,
+    *,
+    torque_bound: Float[Array, "3"],
+    rate_bound: float | None = None,
+    keep_out: Sequence = (),
+    intervals: int = 40,
+    substeps: int = 4,
+    tol: float = 1e-9,
+    max_iter: int = 200,
+    throw: bool = True,
+) -> ConstrainedReorientation:
+    """Least fuel ``int_0^T sum_i |u_i| dt`` taking ``(q0, omega0)`` to ``(qf, omegaf)`` in the fixed
+    time ``duration``, with ``|u_i| <= torque_bound[i]`` (required: without a bound the l1
+    optimum is impulsive).
+
+    The same transcription, constraints and batching as :func:`minimum_energy_reorientation`;
+    the l1 cost is made smooth by an epigraph variable per axis and interval
+    (``|u_i| <= sigma_i <= b_i``, cost ``sum h sigma_i``). The optimum is bang-off-bang: torque
+    on a bound or zero, except in the intervals that hold a switch. ``cost`` is the fuel."""
+    _check_grid(intervals, substeps)
+    duration = float(duration)
+    if not (duration > 0 and np.isfinite(duration)):
+        raise ValueError(f"argument 'duration' must be a positive finite float, got {duration}")
+    if torque_bound is None:
+        raise ValueError("argument 'torque_bound' is required for minimum fuel (the l1 optimum is impulsive)")
+    inertia, q0, qf, w0, wf, bound, rate_bound, cones = _prepare(inertia, q0, qf, omega0, omegaf, torque_bound,
+                                                                 rate_bound, keep_out)
+    T, u_ref, w_ref = _scales(inertia, q0, qf, w0, wf, duration, min_time=False)
+    u_ref = jnp.broadcast_to(bound, u_ref.shape)
+    cfg = _Config(intervals, substeps, False, True, rate_bound is not None, len(cones), fuel=True)
     return _run(cfg, inertia, q0, qf, w0, wf, T, u_ref, w_ref, bound, rate_bound, cones, tol, max_iter, throw)
 
 

@@ -488,7 +488,7 @@ def test_every_public_name_is_in_the_contract():
                  "minimum_time_reorientation", "Reorientation",
                  # the multiple-shooting interior-point layer (NLP solvers): tests/test_optimal_control.py
                  "solve_shooting", "ShootingProblem", "ShootingSolution", "ConstrainedReorientation",
-                 "constrained_minimum_time", "minimum_energy_reorientation",
+                 "constrained_minimum_time", "minimum_energy_reorientation", "minimum_fuel_reorientation",
                  # the MEKF (a filter over a time axis, with its own jit/vmap/grad tests): tests/test_mekf.py
                  "FilterState", "FilterUpdate", "FilterResult", "mekf_init", "mekf_predict", "mekf_update",
                  "mekf_update_quaternion", "mekf", "ukf_predict", "ukf_update", "ukf_update_quaternion", "ukf"}

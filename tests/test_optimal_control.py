@@ -166,6 +166,27 @@ def test_sun_avoidance_example(constrained_energy, tmp_path):
     assert (tmp_path / "sun_avoidance.png").stat().st_size > 10_000
 
 
+def test_minimum_fuel_is_bang_off_bang_about_the_eigenaxis():
+    """Rest-to-rest 90 degrees about z in 3 s with |u_i| <= 1, J = I: the continuous l1 optimum
+    is bang-off-bang about z with switch t1 = (T - sqrt(T^2 - 4 theta)) / 2 and fuel 2 t1 =
+    1.35172; held on 12 intervals the switch falls inside one, so the discrete fuel lies above
+    (measured 1.36662, 1.1 %) and only the two switch intervals hold an intermediate torque."""
+    r = jq.minimum_fuel_reorientation(np.eye(3), Q0, QZ, 3.0, torque_bound=np.ones(3), intervals=N)
+    assert bool(r.converged) and float(r.violation) < 1e-10
+    t1 = (3.0 - np.sqrt(9.0 - 4 * np.pi / 2)) / 2
+    assert 0 < float(r.cost) / (2 * t1) - 1 < 0.02
+    u = np.asarray(r.controls)
+    assert np.max(np.abs(u[:, :2])) < 1e-6  # no torque off the eigenaxis
+    on_bound, off = np.abs(np.abs(u[:, 2]) - 1) < 1e-6, np.abs(u[:, 2]) < 1e-6
+    assert np.sum(~(on_bound | off)) <= 2 and np.sum(on_bound) >= 4 and np.sum(off) >= 4
+    # The cost is the fuel: sigma_i = |u_i| at the optimum up to the final barrier (measured 4e-8 relative).
+    np.testing.assert_allclose(float(r.cost), np.sum(np.abs(u)) * 3.0 / N, rtol=1e-6)
+    qs, ws = _resimulate(jnp.eye(3), Q0, np.zeros(3), r.controls, float(r.time), 40)
+    assert np.linalg.norm(np.asarray(jq.minus(qs[-1], QZ))) < 1e-6 and np.linalg.norm(ws[-1]) < 1e-6
+    with pytest.raises(ValueError, match="torque_bound"):
+        jq.minimum_fuel_reorientation(np.eye(3), Q0, QZ, 3.0, torque_bound=None)
+
+
 # ------------------------------------------------------------------ minimum time
 
 
