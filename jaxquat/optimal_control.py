@@ -263,6 +263,13 @@ def _check_grid(intervals, substeps) -> None:
                          f"substeps={substeps!r}")
 
 
+def _check_duration(duration) -> float:
+    duration = float(duration)
+    if not (duration > 0 and np.isfinite(duration)):
+        raise ValueError(f"argument 'duration' must be a positive finite float, got {duration}")
+    return duration
+
+
 def _prepare(inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out):
     """Validated, batch-broadcast arrays (shape errors name the argument)."""
     inertia = _validated(inertia)
@@ -372,9 +379,7 @@ def minimum_energy_reorientation(
     ``q0``/``qf`` are normalised. Raises ``RuntimeError`` if a problem does not converge to ``tol``
     (the scaled KKT error) within ``max_iter`` iterations, unless ``throw=False``. Use float64."""
     _check_grid(intervals, substeps)
-    duration = float(duration)
-    if not (duration > 0 and np.isfinite(duration)):
-        raise ValueError(f"argument 'duration' must be a positive finite float, got {duration}")
+    duration = _check_duration(duration)
     inertia, q0, qf, w0, wf, bound, rate_bound, cones = _prepare(inertia, q0, qf, omega0, omegaf, torque_bound,
                                                                  rate_bound, keep_out)
     T, u_ref, w_ref = _scales(inertia, q0, qf, w0, wf, duration, min_time=False)
@@ -410,9 +415,7 @@ def minimum_fuel_reorientation(
     (``|u_i| <= sigma_i <= b_i``, cost ``sum h sigma_i``). The optimum is bang-off-bang: torque
     on a bound or zero, except in the intervals that hold a switch. ``cost`` is the fuel."""
     _check_grid(intervals, substeps)
-    duration = float(duration)
-    if not (duration > 0 and np.isfinite(duration)):
-        raise ValueError(f"argument 'duration' must be a positive finite float, got {duration}")
+    duration = _check_duration(duration)
     if torque_bound is None:
         raise ValueError("argument 'torque_bound' is required for minimum fuel (the l1 optimum is impulsive)")
     inertia, q0, qf, w0, wf, bound, rate_bound, cones = _prepare(inertia, q0, qf, omega0, omegaf, torque_bound,
