@@ -134,21 +134,26 @@ def solve_shooting(
     dtype = X.dtype
     stage, terminal, objective = problem
 
+    def starts(X):  # the state each stage starts from: x_0 .. x_{N-1}
+        return jnp.concatenate([x0[None], X[:-1]])
+
     def stages(X, U, p):
-        starts = jnp.concatenate([x0[None], X[:-1]])
-        return starts, jax.vmap(lambda x, u, k: stage(x, u, p, data, k))(starts, U, jnp.arange(N))
+        return jax.vmap(lambda x, u, k: stage(x, u, p, data, k))(starts(X), U, jnp.arange(N))
+
+    def merit(X, s, F, cost, g, e, phi, mu):
+        """Constraint violation theta (1-norm) and the barrier objective phi_mu, from the stage values."""
+        theta = jnp.sum(jnp.abs(F - X)) + jnp.sum(jnp.abs(e)) + jnp.sum(jnp.abs(g + s))
+        return theta, phi + jnp.sum(cost) - mu * jnp.sum(jnp.log(s))
 
     def measures(X, U, p, s, mu):
-        """Constraint violation theta (1-norm) and the barrier objective phi_mu."""
-        _, (F, cost, g) = stages(X, U, p)
-        theta = jnp.sum(jnp.abs(F - X)) + jnp.sum(jnp.abs(terminal(X[-1], data))) + jnp.sum(jnp.abs(g + s))
-        return theta, objective(p, data) + jnp.sum(cost) - mu * jnp.sum(jnp.log(s))
+        """``merit`` at a trial point (the stages evaluated there)."""
+        F, cost, g = stages(X, U, p)
+        return merit(X, s, F, cost, g, terminal(X[-1], data), objective(p, data), mu)
 
-    ng = jax.eval_shape(lambda: stages(X, U, p))[1][2].shape[1]
+    ng = jax.eval_shape(lambda: stages(X, U, p))[2].shape[1]
 
     def derivatives(st: _State):
-        starts, _ = stages(st.X, st.U, st.p)
-        zs = jnp.concatenate([starts, st.U, jnp.broadcast_to(st.p, (N, n_p))], axis=1)
+        zs = jnp.concatenate([starts(st.X), st.U, jnp.broadcast_to(st.p, (N, n_p))], axis=1)
 
         def one(z, yk, lk, k):
             def flat(zz):
@@ -279,7 +284,7 @@ def solve_shooting(
         tau = jnp.maximum(_TAU_MIN, 1.0 - mu)
         a_max = fraction(st.s, ds, tau)
         a_dual = fraction(st.lam, dlam, tau)
-        theta0, phi0 = measures(st.X, st.U, st.p, st.s, mu)
+        theta0, phi0 = merit(st.X, st.s, F, cost, g, e, phi, mu)  # the current point: no second evaluation
         alphas = a_max * 0.5 ** jnp.arange(_TRIALS, dtype=dtype)
         thetas, phis = jax.vmap(lambda a: measures(st.X + a * dX, st.U + a * dU, st.p + a * dp, st.s + a * ds, mu))(
             alphas)
@@ -309,15 +314,14 @@ def solve_shooting(
         stop = st._replace(kkt=kkt, done=jnp.asarray(True), converged=converged)  # the iterate stays
         return jax.tree.map(lambda n, o: jnp.where(converged | ~step_ok, o, n), new, stop)
 
-    _, (_, _, g0) = stages(X, U, p)
-    s0 = jnp.maximum(-g0, 1e-2)
+    s0 = jnp.maximum(-stages(X, U, p)[2], 1e-2)
     mu0 = jnp.asarray(mu0, dtype)
     filt0 = jnp.full((_FILTER, 2), jnp.inf, dtype).at[:, 1].set(-jnp.inf)
     ne = jax.eval_shape(lambda: terminal(X[-1], data)).shape[0]
     st = _State(X, U, p, s0, mu0 / s0, jnp.zeros((N, nx), dtype), jnp.zeros(ne, dtype), mu0, filt0,
                 jnp.asarray(0), jnp.asarray(jnp.inf, dtype), jnp.asarray(False), jnp.asarray(False))
     st = jax.lax.while_loop(lambda st: (~st.done) & (st.it < max_iter), body, st)
-    starts, (F, cost, g) = stages(st.X, st.U, st.p)
+    F, cost, g = stages(st.X, st.U, st.p)
     e = terminal(st.X[-1], data)
     violation = jnp.maximum(jnp.maximum(jnp.max(jnp.abs(F - st.X)), jnp.max(jnp.abs(e), initial=0.0)),
                             jnp.max(g, initial=0.0))
