@@ -44,7 +44,7 @@ def _guess(inertia, bound, theta, n):
     cfg = oc._Config(n, 4, True, True, False, 0)
     data = oc._Data(jnp.asarray(inertia), q0, zero, qf, zero, T, u_ref, w_ref, jnp.asarray(bound),
                     jnp.asarray(jnp.inf), jnp.zeros((0, 7)))
-    X, V = oc._guess(cfg, data, T)
+    X, V = oc._guess(cfg, data)
     X = np.concatenate([[[1.0, 0, 0, 0, 0, 0, 0]], np.asarray(X)])
     X[:, 4:] *= float(w_ref)
     return float(T), X, np.asarray(V) * np.asarray(u_ref)

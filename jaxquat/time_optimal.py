@@ -53,12 +53,9 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Float
 
 from . import _checks, _trig
-from .dynamics import _euler_body
 from .inertia import _validated
-from .fixed_step import solve_fixed_steps
 from .lie import minus
-from .lie_solvers import RKMK4, BodyRateTerm
-from .optimal_control import constrained_minimum_time
+from .optimal_control import ConstrainedReorientation, constrained_minimum_time, held_torque_states
 
 __all__ = ["Reorientation", "minimum_time_reorientation"]
 
@@ -100,20 +97,10 @@ class Reorientation(NamedTuple):
 
 
 def _rollout(inertia, q0, w0, time, u, substeps: int, trajectory: bool):
-    """Integrate the piecewise-constant torque ``u`` ``(n, 3)`` over ``[0, time]`` with
-    ``substeps`` RKMK4 steps per interval (:func:`jaxquat.solve_fixed_steps`); returns the
-    final state and, if asked, every step's (else None).
-
-    One flat grid of ``n * substeps`` steps, each with its interval's torque, not ``n``
-    intervals of ``substeps`` steps: the derivatives of nested scans (the Newton-KKT Hessian
-    among them) compiled slower, the suite's solver fixture 58.5 s against 45.8 s."""
-
-    def field(t, y, u_k):  # the Lie-algebra form: the body rate itself on the quaternion leaf
-        return y[1], _euler_body(inertia, y[1], u_k)
-
-    ts = jnp.linspace(0.0, 1.0, u.shape[0] * substeps + 1, dtype=w0.dtype) * time
-    qs, ws = solve_fixed_steps(RKMK4(), BodyRateTerm(field), ts, (q0, w0), substeps=1,
-                               interval_args=jnp.repeat(u, substeps, axis=0), checkpoint=False)
+    """:func:`jaxquat.optimal_control.held_torque_states` (RKMK4 through the piecewise-constant
+    torque ``u`` ``(n, 3)`` over ``[0, time]``); returns the final state and, if asked, every
+    step's after the first (else None)."""
+    qs, ws = held_torque_states(inertia, q0, w0, time, u, substeps)
     return (qs[-1], ws[-1]), ((qs[1:], ws[1:]) if trajectory else None)
 
 
@@ -329,7 +316,7 @@ def minimum_time_reorientation(
     rate_bound: float | None = None,
     keep_out: Sequence = (),
     method: str = "auto",
-):
+) -> Reorientation | ConstrainedReorientation:
     """Shortest time ``T`` and bounded body torque taking ``(q0, omega0)`` to ``(qf, omegaf)``.
 
     Minimises ``T`` subject to ``q' = 1/2 q (0, w)``, ``I w' = u - w x I w``
