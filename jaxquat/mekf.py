@@ -181,9 +181,14 @@ def _update_quaternion(q, bias, p, q_meas, sigma):
     return (q, bias, p), (residual[None], nis, *_statistics(nis, logdet, valid))
 
 
-def _flat(update):
-    """An update kernel returning one flat tuple (``jnp.vectorize`` maps over flat outputs only)."""
-    return lambda *args: tuple(x for part in update(*args) for x in part)
+def _apply_update(update, signature: str, args) -> tuple[FilterState, FilterUpdate]:
+    """A single-filter update kernel broadcast over the batch by ``jnp.vectorize`` (which maps
+    over flat outputs only, hence the flattening), its result as ``(FilterState, FilterUpdate)``."""
+    def flat(*a):
+        return tuple(x for part in update(*a) for x in part)
+
+    q, bias, p, *stats = jnp.vectorize(flat, signature=signature)(*args)
+    return FilterState(q, bias, p), FilterUpdate(*stats)
 
 
 def _scan(predict, update, q0, bias0, p0, dt, gyro, body, ref, sigma, gyro_noise, bias_noise):
@@ -340,8 +345,7 @@ def mekf_update(
     vectors the NIS has about 2, not 3, degrees of freedom per vector.
     """
     args = _update_args(state, vectors_body, vectors_ref, vector_noise)
-    q, bias, p, *stats = jnp.vectorize(_flat(_update_vectors), signature=_UPDATE_SIGNATURE)(*args)
-    return FilterState(q, bias, p), FilterUpdate(*stats)
+    return _apply_update(_update_vectors, _UPDATE_SIGNATURE, args)
 
 
 def mekf_update_quaternion(
@@ -354,8 +358,7 @@ def mekf_update_quaternion(
     measurement. The innovation is returned shaped ``(..., 1, 3)``.
     """
     args = _quaternion_args(state, q_meas, noise)
-    q, bias, p, *stats = jnp.vectorize(_flat(_update_quaternion), signature=_QUATERNION_SIGNATURE)(*args)
-    return FilterState(q, bias, p), FilterUpdate(*stats)
+    return _apply_update(_update_quaternion, _QUATERNION_SIGNATURE, args)
 
 
 def mekf(

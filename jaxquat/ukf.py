@@ -40,7 +40,7 @@ from .mekf import (
     FilterResult,
     FilterState,
     FilterUpdate,
-    _flat,
+    _apply_update,
     _innovate,
     _masked,
     _predict_args,
@@ -149,9 +149,7 @@ def ukf_update(
     predicted measurements (module docstring). Arguments, missing rows and the returned statistics
     as in :func:`jaxquat.mekf_update`."""
     args = _update_args(state, vectors_body, vectors_ref, vector_noise)
-    fn = _flat(functools.partial(_update_vectors, kappa=_kappa(kappa)))
-    q, bias, p, *stats = jnp.vectorize(fn, signature=_UPDATE_SIGNATURE)(*args)
-    return FilterState(q, bias, p), FilterUpdate(*stats)
+    return _apply_update(functools.partial(_update_vectors, kappa=_kappa(kappa)), _UPDATE_SIGNATURE, args)
 
 
 def ukf_update_quaternion(
@@ -162,9 +160,7 @@ def ukf_update_quaternion(
     in the error (``minus(q_i, q) = d_i``), so this equals :func:`jaxquat.mekf_update_quaternion`
     to rounding. A NaN in ``q_meas`` means no measurement."""
     args = _quaternion_args(state, q_meas, noise)
-    fn = _flat(functools.partial(_update_quaternion, kappa=_kappa(kappa)))
-    q, bias, p, *stats = jnp.vectorize(fn, signature=_QUATERNION_SIGNATURE)(*args)
-    return FilterState(q, bias, p), FilterUpdate(*stats)
+    return _apply_update(functools.partial(_update_quaternion, kappa=_kappa(kappa)), _QUATERNION_SIGNATURE, args)
 
 
 def ukf(
