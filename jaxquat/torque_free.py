@@ -227,8 +227,11 @@ def _minimal_rotation(n: Array, e: Array) -> Array:
     return p / jnp.sqrt(_safe.norm_sq(p))[..., None]
 
 
+@jax.jit
 def _propagate(q0: Array, omega0: Array, moments: Array, t: Array) -> tuple[Array, Array]:
-    """:func:`euler_poinsot` without argument checks (arrays already broadcast)."""
+    """:func:`euler_poinsot` without argument checks (arrays already broadcast). Compiled as one
+    program: an eager first call at 11 times took 6.0 s as 214 single-operation compilations,
+    3.0 s compiled whole; a repeated eager call 0.77 s, now 5 ms."""
     general, safe_w, safe_i, roles = _safe_state(moments, omega0)
     q_gen, w_gen = _general(q0, safe_w, safe_i, t, *roles)
     q_steady = _multiply(q0, _from_rotvec(omega0 * t[..., None]))
