@@ -44,9 +44,12 @@ test64: $(STAMP)
 test32: $(STAMP)
 	$(CACHED) JAX_ENABLE_X64=0 $(PYTEST)
 
-# ruff's lint rules of pyproject.toml ([tool.ruff]); .ci/run runs it before the tests.
+# ruff's lint rules ([tool.ruff]) and the type checker ([tool.basedpyright], pyright's basic
+# rules on the package), both from pyproject.toml; .ci/run runs them before the tests, and
+# .pre-commit-config.yaml runs the same two commands on each commit.
 lint: $(STAMP)
 	$(PY) -m ruff check jaxquat tests examples benchmarks
+	$(VENV)/bin/basedpyright
 
 # Rewrites the generated sections of docs/benchmarks.md (the text around them stays).
 bench: $(BENCH_STAMP)

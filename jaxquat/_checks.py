@@ -10,10 +10,10 @@ from __future__ import annotations
 
 from typing import Any
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jax.core import Tracer
 
 
 def as_float_array(x: Any, name: str) -> Array:
@@ -116,9 +116,24 @@ def per_item(x: Any, name: str, items: Array, items_name: str) -> Array:
     return x
 
 
+def require_tqdm(function: str) -> None:
+    """``progress=True`` needs tqdm, an optional dependency (``pip install 'jaxquat[progress]'``)."""
+    try:
+        import tqdm  # noqa: F401
+    except ImportError:
+        raise ImportError(
+            f"{function}(progress=True) needs tqdm, an optional dependency: pip install 'jaxquat[progress]'"
+        ) from None
+
+
+def is_traced(x: Any) -> bool:
+    """Whether ``x`` is a tracer (its values unknown: inside ``jit``, ``vmap`` or ``grad``)."""
+    return isinstance(x, Tracer)
+
+
 def concrete(x: Any) -> np.ndarray | None:
     """The values of ``x`` when they are known at trace time (an eager call), else ``None``."""
-    if isinstance(x, jax.core.Tracer):
+    if is_traced(x):
         return None
     return np.asarray(x)
 

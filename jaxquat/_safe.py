@@ -68,7 +68,8 @@ def sinc_cos_of_sq(s: Array) -> tuple[Array, Array]:
     s_small = jnp.where(small, s, 0.0)
     x = jnp.sqrt(jnp.where(small, _TRIG_SWITCH, s))
     sin, cos = _trig.sincos(x)
-    return scalars(jnp.where(small, _horner(s_small, _SINC), sin / x), jnp.where(small, _horner(s_small, _COS), cos))
+    sinc, cos = scalars(jnp.where(small, _horner(s_small, _SINC), sin / x), jnp.where(small, _horner(s_small, _COS), cos))
+    return sinc, cos
 
 
 def atan2_over_n(nsq: Array, w: Array) -> Array:

@@ -83,7 +83,8 @@ _RIGHT_SIGNS = ((1.0, 1.0, 1.0, 1.0), (-1.0, 1.0, 1.0, -1.0), (-1.0, -1.0, 1.0, 
 def _weighted_permutations(weights: Array, x: Array, signs) -> Array:
     """``sum_k weights_k (signs_k * _permuted(x, k))``: linear in ``x`` through whole rows."""
     table = jnp.asarray(signs, x.dtype).reshape((4,) + (1,) * (x.ndim - 1) + (4,))
-    return sum(weights[..., k : k + 1] * (table[k] * _permuted(x, k)) for k in range(4))
+    terms = [weights[..., k : k + 1] * (table[k] * _permuted(x, k)) for k in range(4)]
+    return ((terms[0] + terms[1]) + terms[2]) + terms[3]  # sum()'s order
 
 
 @jax.custom_jvp

@@ -154,7 +154,8 @@ def ellipj(u: Float[Array, "*batch"], m: Float[Array, "*batch"]) -> tuple[Array,
     """
     (u, m), dtype = _broadcast((u, m), ("u", "m"))
     out = _jacobi(u, m, 1 - m)
-    return tuple(jnp.where(m > 1, jnp.nan, x).astype(dtype) for x in out)  # as scipy: NaN outside m <= 1
+    sn, cn, dn, ph = (jnp.where(m > 1, jnp.nan, x).astype(dtype) for x in out)  # as scipy: NaN outside m <= 1
+    return sn, cn, dn, ph
 
 
 def ellipk(m: Float[Array, "*batch"]) -> Array:

@@ -140,7 +140,7 @@ def check_inertia(inertia: Any, name: str = "inertia", rtol: float | None = None
     :func:`is_valid_inertia`.
     """
     arr = _checks.inertia(inertia, name)
-    if isinstance(arr, jax.core.Tracer):
+    if _checks.is_traced(arr):
         raise TypeError(
             f"check_inertia needs concrete values but argument '{name}' is traced (inside jit, vmap or grad); "
             "use jaxquat.is_valid_inertia there"
@@ -177,7 +177,7 @@ def check_inertia(inertia: Any, name: str = "inertia", rtol: float | None = None
 def _validated(inertia: Any, name: str = "inertia") -> Array:
     """Shape check always; value check when the values are concrete (eager calls)."""
     arr = _checks.inertia(inertia, name)
-    if not isinstance(arr, jax.core.Tracer):
+    if not _checks.is_traced(arr):
         check_inertia(arr, name)
     return arr
 

@@ -315,10 +315,10 @@ def solve_shooting(
         return jax.tree.map(lambda n, o: jnp.where(converged | ~step_ok, o, n), new, stop)
 
     s0 = jnp.maximum(-stages(X, U, p)[2], 1e-2)
-    mu0 = jnp.asarray(mu0, dtype)
+    mu_start = jnp.asarray(mu0, dtype)
     filt0 = jnp.full((_FILTER, 2), jnp.inf, dtype).at[:, 1].set(-jnp.inf)
     ne = jax.eval_shape(lambda: terminal(X[-1], data)).shape[0]
-    st = _State(X, U, p, s0, mu0 / s0, jnp.zeros((N, nx), dtype), jnp.zeros(ne, dtype), mu0, filt0,
+    st = _State(X, U, p, s0, mu_start / s0, jnp.zeros((N, nx), dtype), jnp.zeros(ne, dtype), mu_start, filt0,
                 jnp.asarray(0), jnp.asarray(jnp.inf, dtype), jnp.asarray(False), jnp.asarray(False))
     st = jax.lax.while_loop(lambda st: (~st.done) & (st.it < max_iter), body, st)
     F, cost, g = stages(st.X, st.U, st.p)

@@ -156,7 +156,8 @@ class AbstractLeafInterpolation(diffrax.AbstractLocalInterpolation):
         if t1 is not None:
             return jax.tree.map(lambda a, b: b - a, self.evaluate(t0), self.evaluate(t1))
         leaves0, tree = jax.tree.flatten(self.y0)
-        flags = leaf_flags(self.mask, self.y0, type(self).__name__)
+        mask = self.mask  # pyright: ignore[reportAttributeAccessIssue]  # each subclass's last field
+        flags = leaf_flags(mask, self.y0, type(self).__name__)
         s = (t0 - self.t0) / jnp.where(self.t1 == self.t0, 1, self.t1 - self.t0)
         return jax.tree.unflatten(tree, self.leaves_at(s, flags, leaves0))
 
@@ -294,11 +295,11 @@ class AbstractLieSolver(diffrax.AbstractSolver):
     term_structure: ClassVar = diffrax.AbstractTerm
 
     @property
-    def interpolation_cls(self) -> Callable[..., SlerpInterpolation]:  # type: ignore[override]
+    def interpolation_cls(self) -> Callable[..., AbstractLeafInterpolation]:  # type: ignore[override]
         return _Interpolation(self.quaternions)
 
     @abc.abstractmethod
-    def lie_step(self, tangent, t0, t1, h, y0, flags, solver_state, made_jump):
+    def lie_step(self, tangent, t0, t1, h, y0, flags, solver_state, made_jump) -> tuple[Any, Any, Any, Any]:
         """One step from ``(t0, y0)`` to ``t1``: returns ``(y1, y_error or None, dense_info or
         None, solver_state)``. ``tangent`` is evaluated at times in ``[t0, t1]``; ``h`` (diffrax's
         control ``contr(t0, t1)``) scales the increments; the two differ in sign when diffrax
@@ -365,6 +366,8 @@ class AbstractRKMK(AbstractLieSolver):
             a[i + 1, : len(row)] = row
         c = np.concatenate([[0.0], tab.c])
         order = self.order(None)
+        if order is None:
+            raise TypeError(f"{type(self).__name__}.order must return the method's order, got None")
         leaves, tree = jax.tree.flatten(y0)
         # local coordinates: theta (..., 3) on each quaternion leaf (q = q_n Exp(theta)), the leaf itself elsewhere
         coords = [jnp.zeros(x.shape[:-1] + (3,), x.dtype) if f else x for f, x in zip(flags, leaves)]
@@ -418,14 +421,19 @@ class AbstractRKMK(AbstractLieSolver):
         return y1, y_error, dense, g_last
 
 
-def midpoint_weights(solver_cls: type[diffrax.AbstractSolver]) -> np.ndarray:
+def midpoint_weights(solver_cls: type[diffrax.AbstractRungeKutta]) -> np.ndarray:
     """``b_i(1/2)``: the weights of a diffrax Runge-Kutta solver's own dense output at the middle
     of a step, read through its public ``interpolation_cls`` (linear in the stages: evaluated with
     ``y0 = y1 = 0`` and the stages set to the identity). Dopri5, Tsit5 and Dopri8 give weights
     independent of ``y1``. Computed in float64 whatever JAX's precision mode, so a float64 run
     never meets float32-rounded weights."""
-    n = solver_cls.tableau.num_stages
-    x64 = jax.enable_x64 if hasattr(jax, "enable_x64") else jax.experimental.enable_x64  # jax < 0.6
+    tableau = solver_cls.tableau
+    if not isinstance(tableau, diffrax.ButcherTableau):
+        raise TypeError(f"{solver_cls.__name__} has no single Butcher tableau")
+    n = tableau.num_stages
+    x64 = getattr(jax, "enable_x64", None)
+    if x64 is None:  # jax < 0.6
+        from jax.experimental import enable_x64 as x64  # pyright: ignore[reportAttributeAccessIssue]
     with x64(True), jax.ensure_compile_time_eval():
         zero = jnp.zeros(n, jnp.float64)
         interp = solver_cls.interpolation_cls(t0=0.0, t1=1.0, y0=zero, y1=zero, k=jnp.eye(n, dtype=jnp.float64))

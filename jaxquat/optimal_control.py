@@ -322,7 +322,7 @@ def _run(cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, bound, rate_bound
     data = jax.vmap(data_of)(*flat)
     out = jax.vmap(lambda d: _solve(d, cfg, tol, max_iter))(data)
     out = jax.tree.map(lambda a: jnp.reshape(a, batch + a.shape[1:]), out)
-    if throw and not isinstance(out.violation, jax.core.Tracer):
+    if throw and not _checks.is_traced(out.violation):
         bad = ~np.asarray(out.converged)
         if np.any(bad):
             raise RuntimeError(
@@ -429,7 +429,7 @@ def minimum_fuel_reorientation(
     inertia, q0, qf, w0, wf, bound, rate_bound, cones = _prepare(inertia, q0, qf, omega0, omegaf, torque_bound,
                                                                  rate_bound, keep_out)
     T, u_ref, w_ref = _scales(inertia, q0, qf, w0, wf, duration, min_time=False)
-    u_ref = jnp.broadcast_to(bound, u_ref.shape)
+    u_ref = jnp.broadcast_to(jnp.asarray(bound), u_ref.shape)  # bound is torque_bound's array here
     cfg = _Config(intervals, substeps, False, True, rate_bound is not None, len(cones), fuel=True)
     return _run(cfg, inertia, q0, qf, w0, wf, T, u_ref, w_ref, bound, rate_bound, cones, tol, max_iter, throw)
 

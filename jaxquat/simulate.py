@@ -99,7 +99,7 @@ def simulate(
     one state per step. ``solution`` is then ``None``.
     """
     # the values of a concrete ts, taken before any jnp op (under jit those return tracers)
-    ts_host = None if isinstance(ts, jax.core.Tracer) else np.asarray(ts, dtype=np.float64)
+    ts_host = None if _checks.is_traced(ts) else np.asarray(ts, dtype=np.float64)
     q0 = _checks.quat(q0, "q0")
     omega0 = _checks.vec3(omega0, "omega0")
     inertia = _validated(inertia)  # values too, wherever they are concrete: every path trusts them after this
@@ -110,6 +110,8 @@ def simulate(
     q0, omega0, inertia = _checks.broadcast_batch([q0, omega0, inertia], ["q0", "omega0", "inertia"], [1, 1, 2])
     ts = ts.astype(q0.dtype)
     ts = _check_times(ts, ts_host, dt0, solver)
+    if progress:
+        _checks.require_tqdm("simulate")
     if solver is None:
         solver = EulerPoinsotSplit() if torque is None else RKMK45()
     adaptive = _has_error_estimate(solver)
@@ -123,8 +125,10 @@ def simulate(
         span = None if ts_host is None else abs(float(ts_host[-1] - ts_host[0]))
         if exact:
             max_steps = len(ts)
+        elif adaptive or span is None or dt0 is None:  # dt0 is not None here: checked above
+            max_steps = 100_000
         else:
-            max_steps = 100_000 if (adaptive or span is None) else math.ceil(span / abs(dt0)) + len(ts) + 16
+            max_steps = math.ceil(span / abs(dt0)) + len(ts) + 16
     if exact and adjoint is None and not progress:
         return _exact_simulate(q0, omega0, inertia if shared_inertia is None else shared_inertia, ts, principal)
     substeps = None if (adjoint is not None or progress) else _scan_substeps(solver, ts_host, dt0, max_steps)
@@ -202,7 +206,7 @@ def _solve(cfg: _Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> 
             term, solver, ts[0], ts[-1], dt0, (q, w), args=args, saveat=diffrax.SaveAt(ts=ts),
             stepsize_controller=controller, adjoint=cfg.adjoint, max_steps=cfg.max_steps, progress_meter=meter,
         )
-        qs, ws = sol.ys
+        qs, ws = sol.ys  # type: ignore[misc]  # diffrax types ys as Optional; SaveAt(ts=...) fills it
         return qs, ws, sol
 
     if not batch:
@@ -215,7 +219,7 @@ def _solve(cfg: _Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> 
         per_body = None if torque is None else jax.vmap(torque, in_axes=(None, 0, 0, None))
         if shared_inertia is not None and per_body_field:  # one (3, 3) tensor, not carried per body
             flat[2] = shared_inertia
-        qs, ws, sol = solve(*flat, per_body)
+        qs, ws, sol = solve(flat[0], flat[1], flat[2], per_body)
         qs, ws = jnp.swapaxes(qs, 0, 1), jnp.swapaxes(ws, 0, 1)
     return Simulation(qs.reshape(batch + (n, 4)), ws.reshape(batch + (n, 3)), sol)
 
@@ -237,10 +241,11 @@ class _Field(eqx.Module):
         return (w, body.angular_acceleration(t, q, w, args)) if self.rates else body(t, (q, w), args)
 
     def __call__(self, t, y, args):
+        q, w = y
         if not self.stacked:
-            return self._one(t, *y, self.inertia, args)
+            return self._one(t, q, w, self.inertia, args)
         axis = None if self.inertia.ndim == 2 else 0
-        return jax.vmap(self._one, in_axes=(None, 0, 0, axis, None))(t, *y, self.inertia, args)
+        return jax.vmap(self._one, in_axes=(None, 0, 0, axis, None))(t, q, w, self.inertia, args)
 
 
 @functools.partial(jax.jit, static_argnames="principal")
@@ -286,7 +291,7 @@ def _check_times(ts, ts_host, dt0, solver):
     eager call or a concrete ``ts``); a traced ``ts`` is checked at run time (``eqx.error_if``)."""
     if solver is not None and not isinstance(solver, diffrax.AbstractSolver):
         raise TypeError(f"argument 'solver' must be a diffrax solver instance (e.g. jaxquat.RKMK4()), got {solver!r}")
-    if dt0 is not None and not isinstance(dt0, jax.core.Tracer):
+    if dt0 is not None and not _checks.is_traced(dt0):
         value = np.asarray(dt0)
         if value.shape != () or not np.isfinite(value) or value <= 0:
             raise ValueError(f"argument 'dt0' must be a finite positive step size, got {dt0!r}")
@@ -300,7 +305,7 @@ def _check_times(ts, ts_host, dt0, solver):
 
 def _is_concrete_diagonal(inertia) -> bool:
     """A concrete tensor with zero off-diagonal entries (traced values count as full)."""
-    if isinstance(inertia, jax.core.Tracer):
+    if _checks.is_traced(inertia):
         return False
     return not np.any(np.asarray(inertia) * (1 - np.eye(3)) != 0)
 
@@ -314,7 +319,7 @@ def _scan_substeps(solver, ts_host, dt0, max_steps) -> int | None:
     """Steps per interval of ``ts`` (its values ``ts_host``, None if traced) for the scan path,
     or None where diffrax must run (adaptive solvers, solvers from outside jaxquat)."""
     fixed = isinstance(solver, (AbstractLieSolver, AbstractSplitting)) and not _has_error_estimate(solver)
-    if not fixed or dt0 is None or ts_host is None or isinstance(dt0, jax.core.Tracer):
+    if not fixed or dt0 is None or ts_host is None or _checks.is_traced(dt0):
         return None
     widest = float(np.max(np.abs(np.diff(ts_host))))
     substeps = max(1, math.ceil(widest / abs(float(dt0)) * (1 - 1e-12)))

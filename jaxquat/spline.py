@@ -133,7 +133,7 @@ class RotationSpline:
                 f"argument 'times' must be shaped (n,) with n = {quats.shape[0]} (one per key), got shape {tuple(times.shape)}"
             )
         times, quats = _checks.broadcast_batch([times, quats], ["times", "quats"], [1, 2])
-        if not isinstance(times, jax.core.Tracer) and not np.all(np.diff(np.asarray(times)) > 0):
+        if not _checks.is_traced(times) and not np.all(np.diff(np.asarray(times, dtype=np.float64)) > 0):
             raise ValueError(f"argument 'times' must be strictly increasing, got {np.asarray(times).tolist()}")
         self.times = times  # the input dtype; keys and coefficients in the working dtype
         work = _checks.working_dtype(times.dtype)

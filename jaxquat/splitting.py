@@ -140,7 +140,7 @@ class AbstractSplitting(diffrax.AbstractSolver):
         if solver_state is not None:
             # Below float64, rounding drift (5e-4 after 10^5 float32 steps) dwarfs the splitting's
             # bounded O(h^2) energy error (7e-7 there), so the energy is restored too.
-            energy = self.exact_energy or jnp.finfo(w1.dtype).eps > 1e-10
+            energy = bool(self.exact_energy or jnp.finfo(w1.dtype).eps > 1e-10)
             w1 = _onto_invariants(jnp.diagonal(rb.inertia, axis1=-2, axis2=-1), w1, solver_state, energy)
         # A run-time check (under jit the inertia's values are unknown at trace time).
         off_diagonal = jnp.any(rb.inertia * jnp.broadcast_to(1 - jnp.eye(3, dtype=rb.inertia.dtype), rb.inertia.shape) != 0)

@@ -96,12 +96,11 @@ class Reorientation(NamedTuple):
     kkt_residual: Array
 
 
-def _rollout(inertia, q0, w0, time, u, substeps: int, trajectory: bool):
-    """:func:`jaxquat.optimal_control.held_torque_states` (RKMK4 through the piecewise-constant
-    torque ``u`` ``(n, 3)`` over ``[0, time]``); returns the final state and, if asked, every
-    step's after the first (else None)."""
+def _rollout(inertia, q0, w0, time, u, substeps: int):
+    """The final state of :func:`jaxquat.optimal_control.held_torque_states` (RKMK4 through the
+    piecewise-constant torque ``u`` ``(n, 3)`` over ``[0, time]``)."""
     qs, ws = held_torque_states(inertia, q0, w0, time, u, substeps)
-    return (qs[-1], ws[-1]), ((qs[1:], ws[1:]) if trajectory else None)
+    return qs[-1], ws[-1]
 
 
 def _residual(q, w, qf, wf):
@@ -197,7 +196,7 @@ def _unpack(x, pr: _Problem):
 
 def _terminal_residual(x, pr: _Problem, substeps: int):
     time, u = _unpack(x, pr)
-    (q, w), _ = _rollout(pr.inertia, pr.q0, pr.w0, time, u, substeps, trajectory=False)
+    q, w = _rollout(pr.inertia, pr.q0, pr.w0, time, u, substeps)
     return _residual(q, w, pr.qf, pr.wf)
 
 
@@ -222,8 +221,8 @@ def _switching(x, lam, pr: _Problem, substeps: int):
     """The discrete switching function ``sigma = d(lam . c)/du`` ``(intervals, 3)`` at fixed time:
     stationarity in ``p`` is ``sigma b cos(p) = 0``, so a control with ``sigma != 0`` is on a bound."""
     time, u = _unpack(x, pr)
-    return jax.grad(lambda uu: lam @ _residual(*_rollout(pr.inertia, pr.q0, pr.w0, time, uu, substeps,
-                                                          trajectory=False)[0], pr.qf, pr.wf))(u)
+    return jax.grad(lambda uu: lam @ _residual(*_rollout(pr.inertia, pr.q0, pr.w0, time, uu, substeps),
+                                               pr.qf, pr.wf))(u)
 
 
 @functools.partial(jax.jit, static_argnames=("substeps", "iters"))
@@ -408,6 +407,7 @@ def minimum_time_reorientation(
     history = []
     bar = None
     if progress:
+        _checks.require_tqdm("minimum_time_reorientation")
         from tqdm.auto import tqdm
 
         bar = tqdm(total=outer, desc="minimum time", leave=False)
@@ -458,9 +458,8 @@ def minimum_time_reorientation(
     multipliers = jnp.asarray(mults[k])
     time, u = _unpack(xk, problem)
     switching = jnp.asarray(sigmas[k])
-    (qT, wT), (qs, ws) = _rollout(inertia, q0, w0, time, u, substeps, trajectory=True)
-    qs = jnp.concatenate([q0[None], qs.reshape(-1, 4)])
-    ws = jnp.concatenate([w0[None], ws.reshape(-1, 3)])
+    qs, ws = held_torque_states(inertia, q0, w0, time, u, substeps)  # the first row (q0, w0)
+    qT, wT = qs[-1], ws[-1]
     ts = jnp.linspace(0.0, 1.0, intervals * substeps + 1, dtype=dtype) * time
     torque = jnp.repeat(u, substeps, axis=0)
     torque = jnp.concatenate([torque, torque[-1:]])

@@ -56,7 +56,7 @@ __all__ = ["euler_poinsot", "principal_axes", "polhode_period"]
 
 def _validated_moments(moments, name: str = "moments") -> Array:
     moments = _checks.vec3(moments, name)
-    if not isinstance(moments, jax.core.Tracer):
+    if not _checks.is_traced(moments):
         _validated(jnp.vectorize(jnp.diag, signature='(3)->(3,3)')(moments), name)
     return moments
 

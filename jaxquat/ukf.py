@@ -24,12 +24,12 @@ from __future__ import annotations
 
 import functools
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
 from jaxtyping import Float
 
+from . import _checks
 from .algebra import _conjugate, _multiply, _rotate
 from .conversions import _from_rotvec, _to_rotvec
 from .mekf import (
@@ -114,7 +114,7 @@ def _update_quaternion(q, bias, p, q_meas, sigma, kappa):
 
 
 def _kappa(kappa: float) -> float:
-    if isinstance(kappa, jax.core.Tracer) or not np.isfinite(kappa) or kappa <= 0:
+    if _checks.is_traced(kappa) or not np.isfinite(kappa) or kappa <= 0:
         raise ValueError(f"argument 'kappa' must be a positive Python float (the sigma-point spread), got {kappa!r}")
     return float(kappa)
 

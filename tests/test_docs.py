@@ -50,3 +50,20 @@ def test_imports_point_down_the_layer_map_of_architecture_md():
         imported |= {n.strip() for grp in re.findall(r"^from \. import ([\w, ]+)", src, re.M) for n in grp.split(",")}
         upward = {i for i in imported if rank[i] <= rank[m]}
         assert not upward, f"{m}.py imports {upward}, which the map places above it"
+
+
+def test_the_package_re_exports_every_module_name_by_name():
+    """``jaxquat/__init__.py`` lists its re-exports explicitly (``name as name``, for type
+    checkers); they must be exactly the modules' own ``__all__``, no name twice or missing."""
+    import importlib
+
+    text = (ROOT / "jaxquat" / "__init__.py").read_text()
+    modules = re.findall(r"^from \.(\w+) import \(", text, re.M)
+    exported = [name for m in modules for name in importlib.import_module(f"jaxquat.{m}").__all__]
+    assert len(exported) == len(set(exported))
+    assert sorted(jq.__all__) == sorted(exported)
+    for m in modules:
+        block = text[text.index(f"from .{m} import ("):]
+        block = block[: block.index(")")]
+        assert set(re.findall(r"(\w+) as (\w+)", block)) == {(n, n) for n in importlib.import_module(f"jaxquat.{m}").__all__}, m
+    assert all(hasattr(jq, name) for name in jq.__all__)

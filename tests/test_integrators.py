@@ -420,3 +420,16 @@ def test_splittings_keep_unit_norm_and_the_invariants_over_many_steps_torque_fre
     bound = 1e-13 if X64 and isinstance(solver, jq.EulerPoinsotSplit) else (1e-5 if X64 else 1e-6)
     assert energy_drift < bound, energy_drift
     assert float(jnp.max(jnp.abs(jnp.linalg.norm(r.q, axis=-1) - 1))) < (1e-13 if X64 else 1e-6)
+
+
+def test_progress_without_tqdm_names_the_optional_dependency(monkeypatch):
+    """tqdm is optional (``jaxquat[progress]``): without it ``progress=True`` says what to install."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "tqdm", None)  # import tqdm raises ImportError
+    with pytest.raises(ImportError, match=r"simulate\(progress=True\) needs tqdm.*jaxquat\[progress\]"):
+        jq.simulate(jnp.asarray([1.0, 0, 0, 0], DTYPE), jnp.asarray([0.1, 1.0, 0.1], DTYPE),
+                    jnp.eye(3, dtype=DTYPE), jnp.asarray([0.0, 1.0], DTYPE), progress=True)
+    with pytest.raises(ImportError, match=r"minimum_time_reorientation\(progress=True\) needs tqdm"):
+        jq.minimum_time_reorientation(jnp.eye(3, dtype=DTYPE), jnp.ones(3, DTYPE), jnp.asarray([1.0, 0, 0, 0], DTYPE),
+                                      jnp.asarray([0.0, 1.0, 0, 0], DTYPE), progress=True)
