@@ -44,12 +44,13 @@ test64: $(STAMP)
 test32: $(STAMP)
 	$(CACHED) JAX_ENABLE_X64=0 $(PYTEST)
 
-# ruff's lint rules ([tool.ruff]) and the type checker ([tool.basedpyright], pyright's basic
+# ruff's lint rules and its formatter (--check: `ruff format` rewrites; [tool.ruff]) and the type checker ([tool.basedpyright], pyright's basic
 # rules on the package), both from pyproject.toml; .ci/run runs them before the tests, and
 # .pre-commit-config.yaml runs the same two commands on each commit.
 lint: $(STAMP)
 	$(PY) -m ruff check jaxquat tests examples benchmarks
-	$(VENV)/bin/basedpyright
+	$(PY) -m ruff format --check jaxquat tests examples benchmarks
+	$(VENV)/bin/basedpyright --project pyproject.toml
 
 # Rewrites the generated sections of docs/benchmarks.md (the text around them stays).
 bench: $(BENCH_STAMP)

@@ -68,7 +68,9 @@ def main():
     (q, w), wall = timed(run, *f32)
     work = args.bodies * args.steps
     print(f"devices: {jax.devices()}")
-    print(f"vmap, 1 device: {args.bodies} bodies x {args.steps} steps in {wall:.2f} s -> {work / wall:.3e} body-steps/s")
+    print(
+        f"vmap, 1 device: {args.bodies} bodies x {args.steps} steps in {wall:.2f} s -> {work / wall:.3e} body-steps/s"
+    )
 
     devices = jax.devices()[: args.devices]
     mesh = Mesh(np.array(devices), ("bodies",))
@@ -76,15 +78,22 @@ def main():
     sharded = [jax.device_put(x, shard) for x in f32]
     (qs, ws), wall_s = timed(run, *sharded)
     same = float(jnp.max(jnp.abs(qs - q)))
-    print(f"sharded over {len(devices)} devices: {wall_s:.2f} s -> {work / wall_s:.3e} body-steps/s; "
-          f"max |q_sharded - q| = {same:.1e}")
+    print(
+        f"sharded over {len(devices)} devices: {wall_s:.2f} s -> {work / wall_s:.3e} body-steps/s; "
+        f"max |q_sharded - q| = {same:.1e}"
+    )
 
     with jax.enable_x64(True):
-        q_ref, _ = jq.euler_poinsot(jnp.asarray(q0), jnp.asarray(w0), jnp.asarray(moments),
-                                    jnp.full(args.bodies, args.steps * args.dt))
+        q_ref, _ = jq.euler_poinsot(
+            jnp.asarray(q0), jnp.asarray(w0), jnp.asarray(moments), jnp.full(args.bodies, args.steps * args.dt)
+        )
         err = jq.angle_between(jnp.asarray(q, jnp.float64), q_ref)
-        print(f"attitude error at t = {args.steps * args.dt:g} (float32 run vs exact): median {float(jnp.median(err)):.1e}, "
-              f"max {float(jnp.max(err)):.1e} rad; max | |q| - 1 | = {float(jnp.max(jnp.abs(jq.norm(jnp.asarray(q, jnp.float64)) - 1))):.1e}")
+        print(
+            f"attitude error at t = {args.steps * args.dt:g} (float32 run vs exact): median "
+            f"{float(jnp.median(err)):.1e}, "
+            f"max {float(jnp.max(err)):.1e} rad; max | |q| - 1 | = "
+            f"{float(jnp.max(jnp.abs(jq.norm(jnp.asarray(q, jnp.float64)) - 1))):.1e}"
+        )
 
 
 if __name__ == "__main__":

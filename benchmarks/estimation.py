@@ -80,12 +80,13 @@ def static(n=10_000):
     err_triad = _angle(q_triad, q_true[:k])
     rows.append(("ahrs QUEST (loop)", err_quest, t_quest, 0.0))
     rows.append(("ahrs TRIAD (loop, 2000 problems)", err_triad, t_triad, 0.0))
-    out = ["| method | median error, rad | largest, rad | > 0.1 rad off | time per problem | compile |",
-           "|---|---|---|---|---|---|"]
+    out = [
+        "| method | median error, rad | largest, rad | > 0.1 rad off | time per problem | compile |",
+        "|---|---|---|---|---|---|",
+    ]
     for name, err, t, c in rows:
         bad = int(np.sum(~(err < 0.1)))
-        out.append(f"| {name} | {np.median(err):.2e} | {np.nanmax(err):.2e} | {bad} | {1e6 * t:.2f} us | "
-                   f"{c:.2f} s |")
+        out.append(f"| {name} | {np.median(err):.2e} | {np.nanmax(err):.2e} | {bad} | {1e6 * t:.2f} us | {c:.2f} s |")
     return "\n".join(out)
 
 
@@ -117,11 +118,10 @@ def filtering(n=3000, runs=1000):
     jax.block_until_ready(run(*args))
     compile_s = time.perf_counter() - t0
     t_one = median_time(run, *args, repeats=7) / n
-    err_mekf = _angle(np.asarray(run(*args).q), q_true)[n // 2:]
+    err_mekf = _angle(np.asarray(run(*args).q), q_true)[n // 2 :]
     batch = tuple(jnp.broadcast_to(a, (runs, *a.shape)) for a in args)
     t_batch = median_time(run, *batch, repeats=3) / (n * runs)
-    ekf = EKF(frequency=1 / dt, magnetic_ref=STARS[1], var_gyr=sv**2 / dt, var_acc=SIG**2, var_mag=SIG**2,
-              q0=q_true[0])
+    ekf = EKF(frequency=1 / dt, magnetic_ref=STARS[1], var_gyr=sv**2 / dt, var_acc=SIG**2, var_mag=SIG**2, q0=q_true[0])
     ekf.mag = body[:, 1]  # ahrs' measurement function reads whether magnetometer data were given
     q = q_true[0].copy()
     qs = [q]
@@ -131,12 +131,15 @@ def filtering(n=3000, runs=1000):
         qs.append(q)
     t_ekf = (time.perf_counter() - t0) / (n - 1)
     qs = np.array(qs)
-    err_ekf = np.minimum(_angle(qs, q_true), _angle(qs * np.array([1, -1, -1, -1]), q_true))[n // 2:]
-    out = ["| filter | RMS attitude error (2nd half), rad | time per step | compile |", "|---|---|---|---|",
-           f"| jq.mekf (one run, lax.scan) | {np.sqrt(np.mean(err_mekf ** 2)):.2e} | {1e6 * t_one:.2f} us | "
-           f"{compile_s:.2f} s |",
-           f"| jq.mekf ({runs} runs in one call) | same data | {1e6 * t_batch:.3f} us per run-step | |",
-           f"| ahrs EKF (Python loop, no bias state) | {np.sqrt(np.mean(err_ekf ** 2)):.2e} | {1e6 * t_ekf:.1f} us | |"]
+    err_ekf = np.minimum(_angle(qs, q_true), _angle(qs * np.array([1, -1, -1, -1]), q_true))[n // 2 :]
+    out = [
+        "| filter | RMS attitude error (2nd half), rad | time per step | compile |",
+        "|---|---|---|---|",
+        f"| jq.mekf (one run, lax.scan) | {np.sqrt(np.mean(err_mekf**2)):.2e} | {1e6 * t_one:.2f} us | "
+        f"{compile_s:.2f} s |",
+        f"| jq.mekf ({runs} runs in one call) | same data | {1e6 * t_batch:.3f} us per run-step | |",
+        f"| ahrs EKF (Python loop, no bias state) | {np.sqrt(np.mean(err_ekf**2)):.2e} | {1e6 * t_ekf:.1f} us | |",
+    ]
     return "\n".join(out)
 
 
@@ -144,9 +147,11 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--write", help="markdown file whose 'estimation' section to rewrite")
     a = ap.parse_args()
-    md = (f"Machine: {machine()}; float64.\n\n### Static attitude from two vector pairs (10^4 problems, "
-          f"100 near 180 degrees)\n\n{static()}\n\n### Filtering: biased gyro and two vector sensors\n\n"
-          f"{filtering()}\n")
+    md = (
+        f"Machine: {machine()}; float64.\n\n### Static attitude from two vector pairs (10^4 problems, "
+        f"100 near 180 degrees)\n\n{static()}\n\n### Filtering: biased gyro and two vector sensors\n\n"
+        f"{filtering()}\n"
+    )
     print(md)
     if a.write:
         write_section(a.write, "estimation", "## Attitude estimation against ahrs\n\n" + md)

@@ -47,8 +47,16 @@ def run(t_end, solver, dt=None, tol=None, lie=True, repeats=3):
 
     @jax.jit
     def solve():
-        sol = diffrax.diffeqsolve(term, solver, 0.0, t_end, dt if dt else 1e-2, (jq.identity(), jnp.asarray(W0)),
-                                  stepsize_controller=controller, max_steps=steps_cap)
+        sol = diffrax.diffeqsolve(
+            term,
+            solver,
+            0.0,
+            t_end,
+            dt if dt else 1e-2,
+            (jq.identity(), jnp.asarray(W0)),
+            stepsize_controller=controller,
+            max_steps=steps_cap,
+        )
         return sol.ys[0][-1], sol.ys[1][-1], sol.stats["num_steps"]
 
     (q, w, steps), wall = _timed(solve, repeats)
@@ -105,11 +113,16 @@ def _configs(t_end):
 
 
 def table(rows):
-    out = ["| solver | setting | steps | wall time, ms | attitude error, rad | abs(abs(q) - 1) | energy rel. error | momentum rel. drift |",
-           "|---|---|---|---|---|---|---|---|"]
+    out = [
+        "| solver | setting | steps | wall time, ms | attitude error, rad | abs(abs(q) - 1) | energy rel. "
+        "error | momentum rel. drift |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
-        out.append(f"| {r['name']} | {r['setting']} | {r['steps']} | {r['wall'] * 1e3:.1f} | {r['err']:.2e} | "
-                   f"{r['norm']:.1e} | {r['energy']:.1e} | {r['momentum']:.1e} |")
+        out.append(
+            f"| {r['name']} | {r['setting']} | {r['steps']} | {r['wall'] * 1e3:.1f} | {r['err']:.2e} | "
+            f"{r['norm']:.1e} | {r['energy']:.1e} | {r['momentum']:.1e} |"
+        )
     return "\n".join(out)
 
 
@@ -150,21 +163,31 @@ def main():
         plot(rows, args.plot, args.t_end)
         print(f"plot written to {args.plot}")
     if args.growth:
-        print("\nSplittings, saved every 1 s to T: max relative energy error over [0, T/10] and over"
-              " [T/10, T] (bounded: no growth), max relative drift of the spatial angular momentum:")
+        print(
+            "\nSplittings, saved every 1 s to T: max relative energy error over [0, T/10] and over"
+            " [T/10, T] (bounded: no growth), max relative drift of the spatial angular momentum:"
+        )
         print("| solver | setting | energy error, first tenth | energy error, rest | momentum drift |")
         print("|---|---|---|---|---|")
-        for name, solver, dt in [("RigidBodySplit", jq.RigidBodySplit(), 0.01), ("RigidBodySplit4", jq.RigidBodySplit4(), 0.01)]:
+        for name, solver, dt in [
+            ("RigidBodySplit", jq.RigidBodySplit(), 0.01),
+            ("RigidBodySplit4", jq.RigidBodySplit4(), 0.01),
+        ]:
             ts = jnp.linspace(0.0, args.t_end, int(args.t_end) + 1)
-            sim = jax.jit(lambda s=solver, d=dt, ts=ts: jq.simulate(jq.identity(), jnp.asarray(W0), INERTIA, ts, solver=s, dt0=d))()
+            sim = jax.jit(
+                lambda s=solver, d=dt, ts=ts: jq.simulate(jq.identity(), jnp.asarray(W0), INERTIA, ts, solver=s, dt0=d)
+            )()
             energy = np.asarray(jax.vmap(lambda q, w: jq.kinetic_energy(q, w, INERTIA))(sim.q, sim.omega))
             rel = np.abs(energy / energy[0] - 1)
             h = np.asarray(jq.rotate(sim.q, sim.omega @ INERTIA))
             drift = np.abs(h - h[0]).max() / np.linalg.norm(h[0])
             k = len(ts) // 10
-            print(f"| {name} | dt = {dt:g} | {rel[:k + 1].max():.1e} | {rel[k:].max():.1e} | {drift:.1e} |")
+            print(f"| {name} | dt = {dt:g} | {rel[: k + 1].max():.1e} | {rel[k:].max():.1e} | {drift:.1e} |")
         print(f"\nError growth from T = {args.t_end:g} to {10 * args.t_end:g}:")
-        print("| solver | setting | error at T | error at 10 T | ratio | energy rel. error at 10 T | momentum drift at 10 T |")
+        print(
+            "| solver | setting | error at T | error at 10 T | ratio | energy rel. error at 10 T | momentum "
+            "drift at 10 T |"
+        )
         print("|---|---|---|---|---|---|---|")
         for name, solver, dt, tol in [
             ("RigidBodySplit4", jq.RigidBodySplit4(), 0.01, None),
@@ -176,8 +199,10 @@ def main():
             lie = "raw" not in name
             a = measure(args.t_end, name, solver, dt, tol, lie)
             b = measure(10 * args.t_end, name, solver, dt, tol, lie)
-            print(f"| {name} | {a['setting']} | {a['err']:.2e} | {b['err']:.2e} | {b['err'] / a['err']:.1f} | "
-                  f"{b['energy']:.1e} | {b['momentum']:.1e} |")
+            print(
+                f"| {name} | {a['setting']} | {a['err']:.2e} | {b['err']:.2e} | {b['err'] / a['err']:.1f} | "
+                f"{b['energy']:.1e} | {b['momentum']:.1e} |"
+            )
 
 
 if __name__ == "__main__":

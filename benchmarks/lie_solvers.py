@@ -46,8 +46,12 @@ def _quad_control(t, y, thrust):
 
 def quadrotor(dtype):
     model = jq.Quadrotor(1.2, jnp.diag(jnp.asarray([0.02, 0.03, 0.05], dtype)), _quad_control, drag=0.3)
-    y0 = {"r": jnp.zeros(3, dtype), "v": jnp.asarray([1.0, 0.0, 0.5], dtype),
-          "q": jq.from_rotvec(jnp.asarray([0.3, -0.2, 0.1], dtype)), "w": jnp.asarray([2.0, -1.0, 3.0], dtype)}
+    y0 = {
+        "r": jnp.zeros(3, dtype),
+        "v": jnp.asarray([1.0, 0.0, 0.5], dtype),
+        "q": jq.from_rotvec(jnp.asarray([0.3, -0.2, 0.1], dtype)),
+        "w": jnp.asarray([2.0, -1.0, 3.0], dtype),
+    }
     return model, y0, 12.5, 10.0, jq.Quadrotor.quaternions
 
 
@@ -56,11 +60,13 @@ def quadrotor_reference():
         model, y0, thrust, t_end, _ = quadrotor(jnp.float64)
         keys = tuple(y0)
         sizes = np.cumsum([y0[k].size for k in keys])[:-1]
-        field = jax.jit(lambda t, x: jnp.concatenate([model(t, dict(zip(keys, jnp.split(x, sizes))), thrust)[k]
-                                                      for k in keys]))
+        field = jax.jit(
+            lambda t, x: jnp.concatenate([model(t, dict(zip(keys, jnp.split(x, sizes))), thrust)[k] for k in keys])
+        )
         x0 = np.concatenate([np.asarray(y0[k]) for k in keys])
-        x = solve_ivp(lambda t, x: np.asarray(field(t, x)), (0.0, t_end), x0, method="DOP853", rtol=1e-13,
-                      atol=1e-13).y[:, -1]
+        x = solve_ivp(
+            lambda t, x: np.asarray(field(t, x)), (0.0, t_end), x0, method="DOP853", rtol=1e-13, atol=1e-13
+        ).y[:, -1]
     return dict(zip(keys, np.split(x, sizes)))
 
 
@@ -82,19 +88,30 @@ def free_reference():
 
 def _renormalised(model, mask_index):
     """The raw field with ``q / |q|`` read inside it: renormalisation as users do it with Tsit5."""
+
     def field(t, y, args):
         leaves, tree = jax.tree.flatten(y)
         q = leaves[mask_index]
         leaves[mask_index] = q / jnp.linalg.norm(q)
         return model(t, jax.tree.unflatten(tree, leaves), args)
+
     return field
 
 
 def run(term, solver, y0, args, t_end, tol, repeats=7):
     @jax.jit
     def solve():
-        sol = diffrax.diffeqsolve(term, solver, 0.0, t_end, 1e-3, y0, args=args,
-                                  stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol), max_steps=200_000)
+        sol = diffrax.diffeqsolve(
+            term,
+            solver,
+            0.0,
+            t_end,
+            1e-3,
+            y0,
+            args=args,
+            stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol),
+            max_steps=200_000,
+        )
         return jax.tree.map(lambda x: x[-1], sol.ys), sol.stats["num_steps"]
 
     start = time.perf_counter()
@@ -116,8 +133,12 @@ def error(y, ref) -> tuple[float, float]:
         if leaf.shape[-1] == 4:
             norm_err = abs(float(np.linalg.norm(leaf)) - 1)
             dot = abs(float(leaf @ r)) / np.linalg.norm(leaf) / np.linalg.norm(r)
-            err = max(err, 2 * float(np.arccos(min(1.0, dot))) if dot < 1 - 1e-6 else
-                      2 * float(np.linalg.norm(leaf / np.linalg.norm(leaf) * np.sign(leaf @ r) - r)))
+            err = max(
+                err,
+                2 * float(np.arccos(min(1.0, dot)))
+                if dot < 1 - 1e-6
+                else 2 * float(np.linalg.norm(leaf / np.linalg.norm(leaf) * np.sign(leaf @ r) - r)),
+            )
         else:
             err = max(err, float(np.abs(leaf - r).max()))
     return err, norm_err
@@ -147,8 +168,11 @@ def study(name, build, reference):
             y, steps, wall, comp = run(term, solver, y0, args, t_end, tol)
             err, norm_err = error(y, ref)
             rows.append((label, tol, steps, wall, err))
-            print(f"| {label} | {tol:.0e} | {steps} | {steps * calls} | {wall * 1e3:.2f} | {comp:.2f} | "
-                  f"{err:.2e} | {norm_err:.1e} |", flush=True)
+            print(
+                f"| {label} | {tol:.0e} | {steps} | {steps * calls} | {wall * 1e3:.2f} | {comp:.2f} | "
+                f"{err:.2e} | {norm_err:.1e} |",
+                flush=True,
+            )
     return rows
 
 
@@ -177,8 +201,10 @@ def plot(results, path):
 
 
 def main():
-    results = {"quadrotor": study("quadrotor", quadrotor, quadrotor_reference),
-               "free rigid body": study("free rigid body", free_body, free_reference)}
+    results = {
+        "quadrotor": study("quadrotor", quadrotor, quadrotor_reference),
+        "free rigid body": study("free rigid body", free_body, free_reference),
+    }
     if OPTS.plot:
         plot(results, OPTS.plot)
 

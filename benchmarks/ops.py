@@ -104,8 +104,8 @@ def contenders():
             "jaxquat": lambda p, q, v, m, t: jq.slerp(p, q, t),
             # Neither peer has an element-wise slerp; this is how each spells it.
             "jaxlie": lambda p, q, v, m, t: (
-                lie(p) @ jaxlie.SO3.exp(t[:, None] * (lie(p).inverse() @ lie(q)).log())
-            ).wxyz,
+                (lie(p) @ jaxlie.SO3.exp(t[:, None] * (lie(p).inverse() @ lie(q)).log())).wxyz
+            ),
             "scipy": lambda p, q, v, m, t: _wxyz(
                 (sp(p) * Rotation.from_rotvec(t[:, None] * (sp(p).inv() * sp(q)).as_rotvec())).as_quat()
             ),
@@ -120,8 +120,11 @@ def contenders():
             "jaxlie": lambda p, q, v, m, t: jaxlie.SO3.exp(v).wxyz,
             "scipy": lambda p, q, v, m, t: _wxyz(Rotation.from_rotvec(v).as_quat()),
             # brax spells it as axis and angle
-            "brax": brax(lambda p, q, v, m, t: vm(bm.quat_rot_axis)(
-                v / jnp.linalg.norm(v, axis=-1, keepdims=True), jnp.linalg.norm(v, axis=-1))),
+            "brax": brax(
+                lambda p, q, v, m, t: vm(bm.quat_rot_axis)(
+                    v / jnp.linalg.norm(v, axis=-1, keepdims=True), jnp.linalg.norm(v, axis=-1)
+                )
+            ),
         },
         "to_euler (xyz)": {
             "jaxquat": lambda p, q, v, m, t: jq.to_euler(p, "xyz"),
@@ -145,8 +148,11 @@ def contenders():
             "jaxlie": None,
             "scipy": lambda p, q, v, m, t: _wxyz(Rotation.align_vectors(sp(q).apply(v), v)[0].as_quat()),
             # brax's from_to takes unit vectors
-            "brax": brax(lambda p, q, v, m, t: vm(bm.from_to)(*(
-                x / jnp.linalg.norm(x, axis=-1, keepdims=True) for x in (v, jq.rotate(q, v))))),
+            "brax": brax(
+                lambda p, q, v, m, t: vm(bm.from_to)(
+                    *(x / jnp.linalg.norm(x, axis=-1, keepdims=True) for x in (v, jq.rotate(q, v)))
+                )
+            ),
         },
     }
 
@@ -164,41 +170,84 @@ def numpy_contenders():
         return nq.as_quat_array(q)
 
     return {
-        "multiply": {"scipy (NumPy)": lambda p, q, v, m, t: (sp(p) * sp(q)).as_quat(),
-                     "numpy-quaternion": lambda p, q, v, m, t: nqa(p) * nqa(q)},
+        "multiply": {
+            "scipy (NumPy)": lambda p, q, v, m, t: (sp(p) * sp(q)).as_quat(),
+            "numpy-quaternion": lambda p, q, v, m, t: nqa(p) * nqa(q),
+        },
         # (nq.rotate_vectors applies every rotation to every vector: an outer product, not this op)
-        "rotate": {"scipy (NumPy)": lambda p, q, v, m, t: sp(p).apply(v),
-                   "numpy-quaternion": lambda p, q, v, m, t: nq.as_vector_part(
-                       nqa(p) * nq.from_vector_part(v) * nqa(p).conjugate())},
-        "to_matrix": {"scipy (NumPy)": lambda p, q, v, m, t: sp(p).as_matrix(),
-                      "numpy-quaternion": lambda p, q, v, m, t: nq.as_rotation_matrix(nqa(p))},
-        "from_matrix": {"scipy (NumPy)": lambda p, q, v, m, t: R.from_matrix(m).as_quat(),
-                        "numpy-quaternion": lambda p, q, v, m, t: nq.from_rotation_matrix(m)},
-        "slerp": {"scipy (NumPy)": lambda p, q, v, m, t: (sp(p) * R.from_rotvec(
-                      t[:, None] * (sp(p).inv() * sp(q)).as_rotvec())).as_quat(),
-                  "numpy-quaternion": lambda p, q, v, m, t: nqa(p) * np.power(nqa(p).conjugate() * nqa(q), t)},
-        "to_rotvec": {"scipy (NumPy)": lambda p, q, v, m, t: sp(p).as_rotvec(),
-                      "numpy-quaternion": lambda p, q, v, m, t: nq.as_rotation_vector(nqa(p))},
-        "from_rotvec": {"scipy (NumPy)": lambda p, q, v, m, t: R.from_rotvec(v).as_quat(),
-                        "numpy-quaternion": lambda p, q, v, m, t: nq.from_rotation_vector(v)},
+        "rotate": {
+            "scipy (NumPy)": lambda p, q, v, m, t: sp(p).apply(v),
+            "numpy-quaternion": lambda p, q, v, m, t: nq.as_vector_part(
+                nqa(p) * nq.from_vector_part(v) * nqa(p).conjugate()
+            ),
+        },
+        "to_matrix": {
+            "scipy (NumPy)": lambda p, q, v, m, t: sp(p).as_matrix(),
+            "numpy-quaternion": lambda p, q, v, m, t: nq.as_rotation_matrix(nqa(p)),
+        },
+        "from_matrix": {
+            "scipy (NumPy)": lambda p, q, v, m, t: R.from_matrix(m).as_quat(),
+            "numpy-quaternion": lambda p, q, v, m, t: nq.from_rotation_matrix(m),
+        },
+        "slerp": {
+            "scipy (NumPy)": lambda p, q, v, m, t: (
+                sp(p) * R.from_rotvec(t[:, None] * (sp(p).inv() * sp(q)).as_rotvec())
+            ).as_quat(),
+            "numpy-quaternion": lambda p, q, v, m, t: nqa(p) * np.power(nqa(p).conjugate() * nqa(q), t),
+        },
+        "to_rotvec": {
+            "scipy (NumPy)": lambda p, q, v, m, t: sp(p).as_rotvec(),
+            "numpy-quaternion": lambda p, q, v, m, t: nq.as_rotation_vector(nqa(p)),
+        },
+        "from_rotvec": {
+            "scipy (NumPy)": lambda p, q, v, m, t: R.from_rotvec(v).as_quat(),
+            "numpy-quaternion": lambda p, q, v, m, t: nq.from_rotation_vector(v),
+        },
         "to_euler (xyz)": {"scipy (NumPy)": lambda p, q, v, m, t: sp(p).as_euler("xyz"), "numpy-quaternion": None},
-        "from_euler (xyz)": {"scipy (NumPy)": lambda p, q, v, m, t: R.from_euler("xyz", v).as_quat(),
-                             "numpy-quaternion": None},
-        "mean (of the batch)": {"scipy (NumPy)": lambda p, q, v, m, t: sp(p).mean().as_quat(), "numpy-quaternion": None},
-        "align_vectors (batch of pairs)": {"scipy (NumPy)": lambda p, q, v, m, t: R.align_vectors(sp(q).apply(v), v)[0].as_quat(),
-                                           "numpy-quaternion": None},
+        "from_euler (xyz)": {
+            "scipy (NumPy)": lambda p, q, v, m, t: R.from_euler("xyz", v).as_quat(),
+            "numpy-quaternion": None,
+        },
+        "mean (of the batch)": {
+            "scipy (NumPy)": lambda p, q, v, m, t: sp(p).mean().as_quat(),
+            "numpy-quaternion": None,
+        },
+        "align_vectors (batch of pairs)": {
+            "scipy (NumPy)": lambda p, q, v, m, t: R.align_vectors(sp(q).apply(v), v)[0].as_quat(),
+            "numpy-quaternion": None,
+        },
     }
 
 
 # Which of (p, q, v, m, t) each op reads: with its output, the bytes its roofline moves.
-READS = {"multiply": (0, 1), "rotate": (0, 2), "to_matrix": (0,), "from_matrix": (3,), "slerp": (0, 1, 4),
-         "to_rotvec": (0,), "from_rotvec": (2,), "to_euler (xyz)": (0,), "from_euler (xyz)": (2,),
-         "mean (of the batch)": (0,), "align_vectors (batch of pairs)": (1, 2)}
+READS = {
+    "multiply": (0, 1),
+    "rotate": (0, 2),
+    "to_matrix": (0,),
+    "from_matrix": (3,),
+    "slerp": (0, 1, 4),
+    "to_rotvec": (0,),
+    "from_rotvec": (2,),
+    "to_euler (xyz)": (0,),
+    "from_euler (xyz)": (2,),
+    "mean (of the batch)": (0,),
+    "align_vectors (batch of pairs)": (1, 2),
+}
 
 # Under jax.grad: d sum(op) / d (its first array input); which input each op reads first.
-GRAD_INPUT = {"multiply": 0, "rotate": 0, "to_matrix": 0, "from_matrix": 3, "slerp": 0, "to_rotvec": 0,
-              "from_rotvec": 2, "to_euler (xyz)": 0, "from_euler (xyz)": 2, "mean (of the batch)": 0,
-              "align_vectors (batch of pairs)": 2}
+GRAD_INPUT = {
+    "multiply": 0,
+    "rotate": 0,
+    "to_matrix": 0,
+    "from_matrix": 3,
+    "slerp": 0,
+    "to_rotvec": 0,
+    "from_rotvec": 2,
+    "to_euler (xyz)": 0,
+    "from_euler (xyz)": 2,
+    "mean (of the batch)": 0,
+    "align_vectors (batch of pairs)": 2,
+}
 
 
 def _grad_of(fn, index):
@@ -301,7 +350,7 @@ def main(argv=None):
     for dtype in a.dtype:
         jax.config.update("jax_enable_x64", dtype == "float64")
         for n in a.n:
-            for grad in ([False] if a.no_grad else [False, True]):
+            for grad in [False] if a.no_grad else [False, True]:
                 reps = a.repeats if n < 1_000_000 else max(3, a.repeats // 3)
                 rows = run(n, jnp.dtype(dtype), reps, grad)
                 md = table(n, dtype, rows, grad)

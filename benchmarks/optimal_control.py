@@ -42,8 +42,19 @@ def _guess(inertia, bound, theta, n):
     zero = jnp.zeros(3)
     T, u_ref, w_ref = oc._scales(jnp.asarray(inertia), q0, qf, zero, zero, jnp.asarray(bound), min_time=True)
     cfg = oc._Config(n, 4, True, True, False, 0)
-    data = oc._Data(jnp.asarray(inertia), q0, zero, qf, zero, T, u_ref, w_ref, jnp.asarray(bound),
-                    jnp.asarray(jnp.inf), jnp.zeros((0, 7)))
+    data = oc._Data(
+        jnp.asarray(inertia),
+        q0,
+        zero,
+        qf,
+        zero,
+        T,
+        u_ref,
+        w_ref,
+        jnp.asarray(bound),
+        jnp.asarray(jnp.inf),
+        jnp.zeros((0, 7)),
+    )
     X, V = oc._guess(cfg, data)
     X = np.concatenate([[[1.0, 0, 0, 0, 0, 0, 0]], np.asarray(X)])
     X[:, 4:] *= float(w_ref)
@@ -136,10 +147,19 @@ def main():
     batch_line = ""
     if not a.no_batch:
         batch_line = _batch()
-    header = ("| problem | N | jaxquat T | vs published | iterations | jaxquat solve | jaxquat first call (compile) "
-              "| IPOPT T | IPOPT solve | IPOPT / jaxquat |\n|" + "---|" * 10)
-    md = (f"Machine: {machine()}.\n\n" + header + "\n" + "\n".join("| " + " | ".join(r) + " |" for r in rows)
-          + "\n\n" + batch_line + "\n")
+    header = (
+        "| problem | N | jaxquat T | vs published | iterations | jaxquat solve | jaxquat first call (compile) "
+        "| IPOPT T | IPOPT solve | IPOPT / jaxquat |\n|" + "---|" * 10
+    )
+    md = (
+        f"Machine: {machine()}.\n\n"
+        + header
+        + "\n"
+        + "\n".join("| " + " | ".join(r) + " |" for r in rows)
+        + "\n\n"
+        + batch_line
+        + "\n"
+    )
     if a.write:
         write_section(a.write, "optimal-control", "## Minimum-time slews against CasADi + IPOPT\n\n" + md)
 
@@ -151,18 +171,22 @@ def _batch() -> str:
     axes = np.random.default_rng(0).normal(size=(100, 3))
     axes /= np.linalg.norm(axes, axis=1, keepdims=True)
     qfs = jnp.asarray(np.concatenate([np.full((100, 1), np.cos(theta / 2)), np.sin(theta / 2) * axes], axis=1))
+
     def batch():
         return jq.constrained_minimum_time(inertia, bound, jnp.asarray([1.0, 0, 0, 0]), qfs, intervals=n, throw=False)
 
     def one():
         return jq.constrained_minimum_time(inertia, bound, jnp.asarray([1.0, 0, 0, 0]), qfs[0], intervals=n)
+
     t_one = median_time(one, repeats=3, warmup=1, max_seconds=20)
     rb = jax.block_until_ready(batch())
     t_batch = median_time(batch, repeats=2, warmup=0, max_seconds=60)
     conv = int(np.sum(np.asarray(rb.converged)))
-    batch_line = (f"100 slews in one call (asyq01 body, 150 deg about random axes, {n} intervals): {t_batch:.2f} s "
-                  f"against {t_one:.2f} s for one ({t_batch / t_one:.1f}x); {conv} of 100 converged, "
-                  f"iterations {int(np.min(rb.iterations))}-{int(np.max(rb.iterations))}.")
+    batch_line = (
+        f"100 slews in one call (asyq01 body, 150 deg about random axes, {n} intervals): {t_batch:.2f} s "
+        f"against {t_one:.2f} s for one ({t_batch / t_one:.1f}x); {conv} of 100 converged, "
+        f"iterations {int(np.min(rb.iterations))}-{int(np.max(rb.iterations))}."
+    )
     print(batch_line)
     return batch_line
 

@@ -55,12 +55,15 @@ def raw_field(y):
     """The 7-state ODE: q' = 1/2 q (0, w), w' = I^-1 (I w x w) for principal moments."""
     q, w = y[..., :4], y[..., 4:]
     m = jnp.asarray(MOMENTS, y.dtype)
-    qd = 0.5 * jnp.stack([
-        -q[..., 1] * w[..., 0] - q[..., 2] * w[..., 1] - q[..., 3] * w[..., 2],
-        q[..., 0] * w[..., 0] + q[..., 2] * w[..., 2] - q[..., 3] * w[..., 1],
-        q[..., 0] * w[..., 1] + q[..., 3] * w[..., 0] - q[..., 1] * w[..., 2],
-        q[..., 0] * w[..., 2] + q[..., 1] * w[..., 1] - q[..., 2] * w[..., 0],
-    ], -1)
+    qd = 0.5 * jnp.stack(
+        [
+            -q[..., 1] * w[..., 0] - q[..., 2] * w[..., 1] - q[..., 3] * w[..., 2],
+            q[..., 0] * w[..., 0] + q[..., 2] * w[..., 2] - q[..., 3] * w[..., 1],
+            q[..., 0] * w[..., 1] + q[..., 3] * w[..., 0] - q[..., 1] * w[..., 2],
+            q[..., 0] * w[..., 2] + q[..., 1] * w[..., 1] - q[..., 2] * w[..., 0],
+        ],
+        -1,
+    )
     return jnp.concatenate([qd, jnp.cross(m * w, w) / m], -1)
 
 
@@ -79,15 +82,24 @@ def hand_rk4(q0, w0):
 
 
 def tsit5(q0, w0):
-    sol = diffrax.diffeqsolve(diffrax.ODETerm(lambda t, y, a: raw_field(y)), diffrax.Tsit5(), 0.0, STEPS * DT, DT,
-                              jnp.concatenate([q0, w0], -1), saveat=diffrax.SaveAt(t1=True), max_steps=STEPS + 4)
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(lambda t, y, a: raw_field(y)),
+        diffrax.Tsit5(),
+        0.0,
+        STEPS * DT,
+        DT,
+        jnp.concatenate([q0, w0], -1),
+        saveat=diffrax.SaveAt(t1=True),
+        max_steps=STEPS + 4,
+    )
     return sol.ys[0, ..., :4]
 
 
 def jaxquat_rkmk4(q0, w0):
     ts = np.asarray([0.0, STEPS * DT], q0.dtype)  # numpy: concrete under jit, so simulate can plan its steps
-    return jq.simulate(q0, w0, jnp.diag(jnp.asarray(MOMENTS, q0.dtype)), ts, solver=jq.RKMK4(), dt0=DT,
-                       max_steps=STEPS + 4).q[..., -1, :]
+    return jq.simulate(
+        q0, w0, jnp.diag(jnp.asarray(MOMENTS, q0.dtype)), ts, solver=jq.RKMK4(), dt0=DT, max_steps=STEPS + 4
+    ).q[..., -1, :]
 
 
 def mjx_contender():
@@ -106,8 +118,10 @@ def mjx_contender():
     def run(q0, w0):
         def one(q, w):
             dt = data0.qpos.dtype  # the model's (float64 here, as x64 is on for the reference)
-            d = data0.replace(qpos=jnp.concatenate([jnp.zeros(3, dt), q.astype(dt)]),
-                              qvel=jnp.concatenate([jnp.zeros(3, dt), w.astype(dt)]))  # free-joint rates: body frame
+            d = data0.replace(
+                qpos=jnp.concatenate([jnp.zeros(3, dt), q.astype(dt)]),
+                qvel=jnp.concatenate([jnp.zeros(3, dt), w.astype(dt)]),
+            )  # free-joint rates: body frame
             d, _ = jax.lax.scan(lambda d, _: (mjx.step(model, d), None), d, None, length=STEPS)
             return d.qpos[3:7]
 
@@ -124,8 +138,11 @@ def accuracy(q, q0, w0):
 
 
 def throughput(batches, repeats):
-    contenders = {"jaxquat simulate, RKMK4": jaxquat_rkmk4, "hand-written RK4 (raw ODE)": hand_rk4,
-                  "diffrax Tsit5 (raw ODE)": tsit5}
+    contenders = {
+        "jaxquat simulate, RKMK4": jaxquat_rkmk4,
+        "hand-written RK4 (raw ODE)": hand_rk4,
+        "diffrax Tsit5 (raw ODE)": tsit5,
+    }
     mjx_run = mjx_contender()
     if mjx_run is not None:
         contenders["MuJoCo MJX, RK4"] = mjx_run
@@ -141,8 +158,11 @@ def throughput(batches, repeats):
             wall = median_time(f, *args, repeats=repeats if n < 100_000 else 1)
             err, med, drift = accuracy(f(*args), q0, w0)
             rows.append((n, name, n * STEPS / wall, err, med, drift))
-            print(f"batch {n:>6} {name:<28} {n * STEPS / wall:.3e} body-steps/s  error max {err:.1e} median {med:.1e} rad"
-                  f"  | |q|-1 | {drift:.1e}", flush=True)
+            print(
+                f"batch {n:>6} {name:<28} {n * STEPS / wall:.3e} body-steps/s  error max {err:.1e} median {med:.1e} rad"
+                f"  | |q|-1 | {drift:.1e}",
+                flush=True,
+            )
     return rows
 
 
@@ -180,7 +200,8 @@ def markdown(rows, grad):
         f"Torque-free bodies, moments (1, 2, 3), float32, dt = {DT}, {STEPS} steps; {machine()}. "
         "Error: attitude error at T = 10 against `euler_poinsot` (float64), largest and median over the batch.",
         "",
-        "| batch | contender | body-steps/s | vs hand RK4 | final error, max (rad) | median (rad) | max abs(abs(q) - 1) |",
+        "| batch | contender | body-steps/s | vs hand RK4 | final error, max (rad) | median (rad) | max "
+        "abs(abs(q) - 1) |",
         "|---:|---|---:|---:|---:|---:|---:|",
     ]
     for n, name, rate, err, med, drift in rows:

@@ -64,7 +64,9 @@ def main():
     truth = jq.from_rotvec(jnp.asarray([0.2, 0.5, -0.3]))
     b = jax.random.normal(jax.random.PRNGKey(1), (10, 3))
     a = jq.rotate(truth, b) + 1e-3 * jax.random.normal(jax.random.PRNGKey(2), (10, 3))
-    rows.append(("align_vectors error, 10 vectors, 1e-3 noise, rad", float(jq.angle_between(jq.align_vectors(a, b), truth))))
+    rows.append(
+        ("align_vectors error, 10 vectors, 1e-3 noise, rad", float(jq.angle_between(jq.align_vectors(a, b), truth)))
+    )
 
     # 7. The Euler-parameter equations of motion, three ways (float32): Chou's closed
     #    form, Schwab's augmented system with its multiplier, Newton-Euler on (q, w).
@@ -80,8 +82,9 @@ def main():
     rows.append(("EOM, 1000 states: max |Chou - Schwab (23)| qddot", float(jnp.abs(chou - schwab[:, :4]).max())))
     rows.append(("  max |Chou - Newton-Euler| qddot", float(jnp.abs(chou - newton).max())))
     lam = jq.norm_constraint_multiplier(qb, qd, inertia)
-    rows.append(("  Schwab's multiplier vs w.Iw (eq. 24), max rel. error",
-                 float(jnp.abs(schwab[:, 4] / lam - 1).max())))
+    rows.append(
+        ("  Schwab's multiplier vs w.Iw (eq. 24), max rel. error", float(jnp.abs(schwab[:, 4] / lam - 1).max()))
+    )
 
     # 8-9. The two dynamics examples (they switch float64 on: run them after the float32 part).
     sys.path.insert(0, str(pathlib.Path(__file__).parent))

@@ -65,10 +65,14 @@ def main(argv=None):
     err_rk = float(jnp.max(jq.angle_between(sim.q, q_exact)))
     print(f"T-handle principal moments: {np.asarray(moments).round(4)}; spin w0 = {np.asarray(w0)} rad/s")
     print(f"flips observed at t = {np.round(flips, 3)}")
-    print(f"flip interval: measured {measured:.6f} s, 2K(m)/lambda = {formula:.6f} s, "
-          f"relative difference {abs(measured / formula - 1):.1e}")
-    print(f"RKMK45 (rtol 1e-10) vs exact over {args.t_end:g} s: max attitude difference {err_rk:.1e} rad; "
-          f"|q| - 1 at most {float(jnp.max(jnp.abs(jq.norm(sim.q) - 1))):.1e}")
+    print(
+        f"flip interval: measured {measured:.6f} s, 2K(m)/lambda = {formula:.6f} s, "
+        f"relative difference {abs(measured / formula - 1):.1e}"
+    )
+    print(
+        f"RKMK45 (rtol 1e-10) vs exact over {args.t_end:g} s: max attitude difference {err_rk:.1e} rad; "
+        f"|q| - 1 at most {float(jnp.max(jnp.abs(jq.norm(sim.q) - 1))):.1e}"
+    )
     print(f"wall time (incl. compilation): exact {t_exact:.2f} s, RKMK45 {t_rk:.2f} s")
 
     out = pathlib.Path(args.out)

@@ -65,7 +65,9 @@ def measurements(noise, seed):
 def initial_guess(meas):
     dt = TS[1] - TS[0]
     w0 = jq.minus(meas[1], meas[0]) / dt  # body rate from the first two measurements
-    return dict(dq0=jnp.zeros(3), w0=w0, log_moments=jnp.log(jnp.asarray([0.9, 1.0, 1.1])), axes=jnp.asarray([0.1, 0.1, 0.1]))
+    return dict(
+        dq0=jnp.zeros(3), w0=w0, log_moments=jnp.log(jnp.asarray([0.9, 1.0, 1.1])), axes=jnp.asarray([0.1, 0.1, 0.1])
+    )
 
 
 WINDOWS = (2.0, 6.0, 20.0)
@@ -109,8 +111,10 @@ def main(argv=None):
         err = float(jnp.linalg.norm(est - truth) / jnp.linalg.norm(truth))
         w_err = float(jnp.linalg.norm(p["w0"] - TRUE_W0))
         results.append((noise, err, values))
-        print(f"noise {noise:.0e} rad: relative tensor error {err:.2e}, |w0 error| {w_err:.1e} rad/s, "
-              f"final loss {float(values[-1]):.3e} ({len(TS)} attitudes), {time.perf_counter() - t0:.1f} s")
+        print(
+            f"noise {noise:.0e} rad: relative tensor error {err:.2e}, |w0 error| {w_err:.1e} rad/s, "
+            f"final loss {float(values[-1]):.3e} ({len(TS)} attitudes), {time.perf_counter() - t0:.1f} s"
+        )
     print(f"recovered inertia at noise {args.noise[-1]:.0e} (trace 3):\n{np.asarray(est).round(4)}")
 
     out = pathlib.Path(args.out)

@@ -40,10 +40,7 @@ WIDTH = 32
 def init_params(key):
     sizes = [6, WIDTH, WIDTH, 3]
     keys = jax.random.split(key, len(sizes) - 1)
-    return [
-        (jax.random.normal(k, (m, n)) / np.sqrt(m), jnp.zeros(n))
-        for k, m, n in zip(keys, sizes[:-1], sizes[1:])
-    ]
+    return [(jax.random.normal(k, (m, n)) / np.sqrt(m), jnp.zeros(n)) for k, m, n in zip(keys, sizes[:-1], sizes[1:])]
 
 
 def policy(params, q, w):
@@ -57,8 +54,16 @@ def policy(params, q, w):
 
 def rollout(params, q0, w0):
     """States at TS for a batch ``q0`` ``(n, 4)``, ``w0`` ``(n, 3)``, and the torques applied."""
-    sim = jq.simulate(q0, w0, INERTIA, jnp.asarray(TS, q0.dtype), torque=lambda t, q, w, p: policy(p, q, w),
-                      args=params, solver=jq.RKMK4(), dt0=DT)
+    sim = jq.simulate(
+        q0,
+        w0,
+        INERTIA,
+        jnp.asarray(TS, q0.dtype),
+        torque=lambda t, q, w, p: policy(p, q, w),
+        args=params,
+        solver=jq.RKMK4(),
+        dt0=DT,
+    )
     u = jax.vmap(jax.vmap(lambda q, w: policy(params, q, w)))(sim.q, sim.omega)
     return sim.q, sim.omega, u
 
@@ -120,8 +125,10 @@ def main(argv=None):
     wall = time.perf_counter() - t0
     print(f"{args.bodies} random attitudes, J = diag(1, 1.5, 2), |u_i| <= 1, T = {T:g} s")
     print(f"untrained: success rate {100 * before[0]:.1f} %, mean cost {before[1]:.4f}")
-    print(f"trained ({args.steps} Adam steps, batch {args.batch}): success rate {100 * success:.1f} %, "
-          f"mean cost {cost:.4f}, median final error {np.degrees(np.median(att)):.3f} deg; wall time {wall:.1f} s")
+    print(
+        f"trained ({args.steps} Adam steps, batch {args.batch}): success rate {100 * success:.1f} %, "
+        f"mean cost {cost:.4f}, median final error {np.degrees(np.median(att)):.3f} deg; wall time {wall:.1f} s"
+    )
 
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

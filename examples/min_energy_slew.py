@@ -51,8 +51,16 @@ def make_problem(steps):
     ts = jnp.asarray([0.0, T])
 
     def terminal(nodes):
-        sim = jq.simulate(jq.identity(), jnp.zeros(3), jnp.eye(3), ts, torque=lambda t, q, w, n: torque_at(t, n),
-                          args=nodes, solver=jq.RKMK4(), dt0=T / steps)
+        sim = jq.simulate(
+            jq.identity(),
+            jnp.zeros(3),
+            jnp.eye(3),
+            ts,
+            torque=lambda t, q, w, n: torque_at(t, n),
+            args=nodes,
+            solver=jq.RKMK4(),
+            dt0=T / steps,
+        )
         return jnp.concatenate([jq.minus(sim.q[-1], qf), sim.omega[-1]])
 
     def lagrangian(nodes, lam, mu):
@@ -79,8 +87,10 @@ def solve(nodes_n=21, outer=6, inner=60, steps=200, verbose=True):
         c = terminal_j(nodes)
         lam = lam + mu * c
         if verbose:
-            print(f"outer {k}: augmented Lagrangian {float(value):.6f}, energy {float(energy(nodes)):.6f}, "
-                  f"constraint violation {float(jnp.linalg.norm(c)):.2e}")
+            print(
+                f"outer {k}: augmented Lagrangian {float(value):.6f}, energy {float(energy(nodes)):.6f}, "
+                f"constraint violation {float(jnp.linalg.norm(c)):.2e}"
+            )
     return nodes, terminal_j(nodes)
 
 
@@ -98,9 +108,11 @@ def main(argv=None):
     cost = float(energy(nodes))
     optimum = 12 * THETA**2 / T**3
     print(f"slew of {np.degrees(THETA):.0f} deg about {AXIS.round(3)} in T = {T:g} s, J = I")
-    print(f"cost {cost:.6f} vs analytic optimum 12 theta^2 / T^3 = {optimum:.6f}: "
-          f"{100 * (cost / optimum - 1):+.3f} %")
-    print(f"terminal attitude error {float(jnp.linalg.norm(c[:3])):.1e} rad, terminal rate {float(jnp.linalg.norm(c[3:])):.1e} rad/s")
+    print(f"cost {cost:.6f} vs analytic optimum 12 theta^2 / T^3 = {optimum:.6f}: {100 * (cost / optimum - 1):+.3f} %")
+    print(
+        f"terminal attitude error {float(jnp.linalg.norm(c[:3])):.1e} rad, terminal rate "
+        f"{float(jnp.linalg.norm(c[3:])):.1e} rad/s"
+    )
     # The optimal torque is along the eigenaxis: report the largest off-axis component.
     off_axis = np.asarray(nodes) - np.outer(np.asarray(nodes) @ AXIS, AXIS)
     print(f"largest off-eigenaxis torque {np.abs(off_axis).max():.1e} (optimum: 0); wall time {wall:.1f} s")

@@ -50,24 +50,44 @@ def control(t, y, args):
 
 
 MODEL = jq.Quadrotor(MASS, INERTIA, control, drag=0.3)
-Y0 = {"r": jnp.zeros(3), "v": jnp.asarray([1.0, 0.0, 0.5]), "q": jq.from_rotvec(jnp.asarray([0.3, -0.2, 0.1])),
-      "w": jnp.asarray([2.0, -1.0, 3.0])}
+Y0 = {
+    "r": jnp.zeros(3),
+    "v": jnp.asarray([1.0, 0.0, 0.5]),
+    "q": jq.from_rotvec(jnp.asarray([0.3, -0.2, 0.1])),
+    "w": jnp.asarray([2.0, -1.0, 3.0]),
+}
 
 
 def solve(solver, t_end, ts):
-    sol = diffrax.diffeqsolve(diffrax.ODETerm(MODEL), solver, 0.0, t_end, 1e-3, Y0,
-                              stepsize_controller=diffrax.PIDController(rtol=TOL, atol=TOL),
-                              saveat=diffrax.SaveAt(ts=ts), max_steps=200_000)
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(MODEL),
+        solver,
+        0.0,
+        t_end,
+        1e-3,
+        Y0,
+        stepsize_controller=diffrax.PIDController(rtol=TOL, atol=TOL),
+        saveat=diffrax.SaveAt(ts=ts),
+        max_steps=200_000,
+    )
     return sol.ys, sol.stats["num_steps"]
 
 
 def reference(t_end, ts):
     """DOP853 on the raw ODE (the same field, q as a plain 4-vector), rtol = atol = 1e-13."""
-    field = jax.jit(lambda t, x: jnp.concatenate(
-        [MODEL(t, dict(zip(KEYS, jnp.split(x, [3, 6, 10]))), None)[k] for k in KEYS]))
+    field = jax.jit(
+        lambda t, x: jnp.concatenate([MODEL(t, dict(zip(KEYS, jnp.split(x, [3, 6, 10]))), None)[k] for k in KEYS])
+    )
     x0 = np.concatenate([np.asarray(Y0[k]) for k in KEYS])
-    sol = solve_ivp(lambda t, x: np.asarray(field(t, x)), (0.0, t_end), x0, method="DOP853", rtol=1e-13,
-                    atol=1e-13, t_eval=np.asarray(ts))
+    sol = solve_ivp(
+        lambda t, x: np.asarray(field(t, x)),
+        (0.0, t_end),
+        x0,
+        method="DOP853",
+        rtol=1e-13,
+        atol=1e-13,
+        t_eval=np.asarray(ts),
+    )
     return dict(zip(KEYS, np.split(sol.y.T, [3, 6, 10], axis=1)))
 
 
@@ -78,8 +98,10 @@ def main(argv=None):
     opts = ap.parse_args(argv)
     ts = jnp.linspace(0.0, opts.t_end, 201)
     runs = {}
-    for name, solver in (("RKMK45 (Lie)", jq.RKMK45(quaternions=jq.Quadrotor.quaternions)),
-                         ("Tsit5 (raw ODE)", diffrax.Tsit5())):
+    for name, solver in (
+        ("RKMK45 (Lie)", jq.RKMK45(quaternions=jq.Quadrotor.quaternions)),
+        ("Tsit5 (raw ODE)", diffrax.Tsit5()),
+    ):
         run = jax.jit(lambda s=solver: solve(s, opts.t_end, ts))
         ys, steps = jax.block_until_ready(run())
         start = time.perf_counter()
@@ -93,8 +115,10 @@ def main(argv=None):
         pos = float(np.max(np.abs(np.asarray(ys["r"]) - ref["r"])))
         rate = float(np.max(np.abs(np.asarray(ys["w"]) - ref["w"])))
         drift = float(jnp.max(jnp.abs(jq.norm(ys["q"]) - 1)))
-        print(f"{name:16s} steps {steps:5d}  {wall * 1e3:7.2f} ms  attitude error {att:.2e} rad  "
-              f"position error {pos:.2e} m  rate error {rate:.2e} rad/s  max ||q| - 1| {drift:.1e}")
+        print(
+            f"{name:16s} steps {steps:5d}  {wall * 1e3:7.2f} ms  attitude error {att:.2e} rad  "
+            f"position error {pos:.2e} m  rate error {rate:.2e} rad/s  max ||q| - 1| {drift:.1e}"
+        )
     lie = runs["RKMK45 (Lie)"][0]
     print(f"final altitude {float(lie['r'][-1, 2]):.4f} m")
     out = pathlib.Path(opts.out)

@@ -31,8 +31,12 @@ import jaxquat as jq  # noqa: E402
 
 J = jnp.asarray([[120.0, 2.0, -1.0], [2.0, 100.0, 1.5], [-1.0, 1.5, 80.0]])  # kg m^2, wheels' axial part removed
 TILT = np.arccos(1 / np.sqrt(3))  # pyramid: each axis 54.7 deg from the body z axis
-AXES = jnp.asarray([[np.sin(TILT) * np.cos(a), np.sin(TILT) * np.sin(a), np.cos(TILT)]
-                    for a in np.radians([45.0, 135.0, 225.0, 315.0])])
+AXES = jnp.asarray(
+    [
+        [np.sin(TILT) * np.cos(a), np.sin(TILT) * np.sin(a), np.cos(TILT)]
+        for a in np.radians([45.0, 135.0, 225.0, 315.0])
+    ]
+)
 TORQUE_LIMIT, MOMENTUM_LIMIT = 0.2, 2.2  # N m, N m s per wheel
 TARGET = jq.from_axis_angle(jnp.asarray([1.0, -1.0, 0.5]), jnp.radians(120.0))
 KP, KD = 0.6, 6.0
@@ -51,26 +55,43 @@ def control(t, y, args):
     return u, jnp.zeros(3)
 
 
-MODEL = jq.ReactionWheelSpacecraft(J, AXES, control, wheel_torque_limit=TORQUE_LIMIT,
-                                   wheel_momentum_limit=MOMENTUM_LIMIT)
+MODEL = jq.ReactionWheelSpacecraft(
+    J, AXES, control, wheel_torque_limit=TORQUE_LIMIT, wheel_momentum_limit=MOMENTUM_LIMIT
+)
 Y0 = {"q": jnp.asarray([1.0, 0.0, 0.0, 0.0]), "w": jnp.asarray([0.01, -0.02, 0.015]), "h": jnp.zeros(4)}
 
 
 @jax.jit
 def slew(ts):
-    sol = diffrax.diffeqsolve(diffrax.ODETerm(MODEL), jq.RKMK45(quaternions=MODEL.quaternions), 0.0, ts[-1], 0.1, Y0,
-                              stepsize_controller=diffrax.PIDController(rtol=TOL, atol=TOL),
-                              saveat=diffrax.SaveAt(ts=ts), max_steps=100_000)
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(MODEL),
+        jq.RKMK45(quaternions=MODEL.quaternions),
+        0.0,
+        ts[-1],
+        0.1,
+        Y0,
+        stepsize_controller=diffrax.PIDController(rtol=TOL, atol=TOL),
+        saveat=diffrax.SaveAt(ts=ts),
+        max_steps=100_000,
+    )
     return sol.ys, sol.stats["num_steps"]
 
 
 def reference(ts):
     """DOP853 on the raw ODE (the same field, q as a plain 4-vector), rtol = atol = 1e-13."""
-    field = jax.jit(lambda t, x: jnp.concatenate(
-        [MODEL(t, dict(zip(KEYS, jnp.split(x, [4, 7]))), None)[k] for k in KEYS]))
+    field = jax.jit(
+        lambda t, x: jnp.concatenate([MODEL(t, dict(zip(KEYS, jnp.split(x, [4, 7]))), None)[k] for k in KEYS])
+    )
     x0 = np.concatenate([np.asarray(Y0[k]) for k in KEYS])
-    sol = solve_ivp(lambda t, x: np.asarray(field(t, x)), (0.0, float(ts[-1])), x0, method="DOP853",
-                    rtol=1e-13, atol=1e-13, t_eval=np.asarray(ts))
+    sol = solve_ivp(
+        lambda t, x: np.asarray(field(t, x)),
+        (0.0, float(ts[-1])),
+        x0,
+        method="DOP853",
+        rtol=1e-13,
+        atol=1e-13,
+        t_eval=np.asarray(ts),
+    )
     return dict(zip(KEYS, np.split(sol.y.T, [4, 7], axis=1)))
 
 
@@ -94,8 +115,10 @@ def main(argv=None):
     print(f"against DOP853 at 1e-13: attitude error {att:.2e} rad, wheel momentum error {wheel:.2e} N m s")
     print(f"relative drift of the inertial angular momentum {drift:.2e}")
     print(f"max ||q| - 1| {float(jnp.max(jnp.abs(jq.norm(ys['q']) - 1))):.1e}")
-    print(f"max wheel torque {float(jnp.max(jnp.abs(u))):.9f} N m (limit {TORQUE_LIMIT}), "
-          f"max wheel momentum {float(jnp.max(jnp.abs(ys['h']))):.9f} N m s (limit {MOMENTUM_LIMIT})")
+    print(
+        f"max wheel torque {float(jnp.max(jnp.abs(u))):.9f} N m (limit {TORQUE_LIMIT}), "
+        f"max wheel momentum {float(jnp.max(jnp.abs(ys['h']))):.9f} N m s (limit {MOMENTUM_LIMIT})"
+    )
     out = pathlib.Path(opts.out)
     out.mkdir(parents=True, exist_ok=True)
     import matplotlib

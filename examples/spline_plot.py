@@ -85,8 +85,10 @@ def main():
     args = parser.parse_args()
     path = plot(pathlib.Path(args.out))
     jumps = key_jumps(build()[0])
-    print(f"max jump across keys over 2e-8 s: angular velocity {jumps[1]:.1e} rad/s, "
-          f"angular acceleration {jumps[2]:.1e} rad/s^2")
+    print(
+        f"max jump across keys over 2e-8 s: angular velocity {jumps[1]:.1e} rad/s, "
+        f"angular acceleration {jumps[2]:.1e} rad/s^2"
+    )
     print(f"figure: {path}")
 
 

@@ -116,15 +116,22 @@ def monte_carlo(runs, n):
     t0 = time.perf_counter()
     jax.block_until_ready(single(one))
     single_s = time.perf_counter() - t0
-    print(f"Monte Carlo: {runs} runs x {n} samples in one call: {run_s:.3f} s "
-          f"({1e6 * run_s / (runs * n):.2f} us per filter step; compile {compile_s:.1f} s); "
-          f"one run alone {1e6 * single_s / n:.2f} us per step")
+    print(
+        f"Monte Carlo: {runs} runs x {n} samples in one call: {run_s:.3f} s "
+        f"({1e6 * run_s / (runs * n):.2f} us per filter step; compile {compile_s:.1f} s); "
+        f"one run alone {1e6 * single_s / n:.2f} us per step"
+    )
     print(f"average NEES {float(nees.mean()):.3f} (6 dof), inside its 95% bounds at {inside_nees:.3f} of the times")
-    print(f"average NIS {float(nis[measured].mean()):.3f} (6 dof), inside its 95% bounds at {inside_nis:.3f} of the updates")
+    print(
+        f"average NIS {float(nis[measured].mean()):.3f} (6 dof), inside its 95% bounds at {inside_nis:.3f} of "
+        "the updates"
+    )
     print(f"attitude errors inside 3 sigma: {in3:.4f}")
     final = np.degrees(np.asarray(sigma[0, -1, :3])) * 3600
-    print(f"steady-state 3-sigma attitude bound {3 * final.max():.2f} arcsec; "
-          f"RMS error {np.degrees(float(jnp.sqrt(jnp.mean(err[:, n // 2:, :3] ** 2)))) * 3600:.2f} arcsec per axis")
+    print(
+        f"steady-state 3-sigma attitude bound {3 * final.max():.2f} arcsec; "
+        f"RMS error {np.degrees(float(jnp.sqrt(jnp.mean(err[:, n // 2 :, :3] ** 2)))) * 3600:.2f} arcsec per axis"
+    )
     return one, jax.tree.map(lambda x: x[0], result)
 
 
@@ -174,9 +181,11 @@ def fit_noise(runs, n, steps):
         x, state, value = step(x, state)
         path.append(float(value))
     ratio = np.exp(np.asarray(x - truth))
-    print(f"noise fit by gradient ({steps} Adam steps from 10x, 0.1x, 10x; {runs} MEMS records of {n}): learned / true = "
-          f"gyro {ratio[0]:.3f}, bias {ratio[1]:.3f}, vector sensor {ratio[2]:.3f}; "
-          f"NLL {path[0]:.1f} -> {path[-1]:.1f} (at the true values {float(step(truth, state)[2]):.1f})")
+    print(
+        f"noise fit by gradient ({steps} Adam steps from 10x, 0.1x, 10x; {runs} MEMS records of {n}): learned / true = "
+        f"gyro {ratio[0]:.3f}, bias {ratio[1]:.3f}, vector sensor {ratio[2]:.3f}; "
+        f"NLL {path[0]:.1f} -> {path[-1]:.1f} (at the true values {float(step(truth, state)[2]):.1f})"
+    )
     return path
 
 

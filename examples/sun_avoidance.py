@@ -45,8 +45,14 @@ def resimulate(controls, time, substeps):
         return y[1], u - jnp.cross(y[1], y[1])  # unit inertia
 
     ts = jnp.linspace(0.0, time, controls.shape[0] + 1)
-    return jq.solve_fixed_steps(jq.RKMK4(), jq.BodyRateTerm(field), ts, (jnp.asarray(Q0), jnp.zeros(3)),
-                                substeps=substeps, interval_args=controls)
+    return jq.solve_fixed_steps(
+        jq.RKMK4(),
+        jq.BodyRateTerm(field),
+        ts,
+        (jnp.asarray(Q0), jnp.zeros(3)),
+        substeps=substeps,
+        interval_args=controls,
+    )
 
 
 def main():
@@ -54,16 +60,26 @@ def main():
     ap.add_argument("--intervals", type=int, default=12)
     ap.add_argument("--out", default="examples/out")
     a = ap.parse_args()
-    r = jq.minimum_energy_reorientation(np.eye(3), Q0, QF, DURATION, torque_bound=TORQUE, rate_bound=RATE,
-                                        keep_out=[(BORESIGHT, SUN, HALF)], intervals=a.intervals)
+    r = jq.minimum_energy_reorientation(
+        np.eye(3),
+        Q0,
+        QF,
+        DURATION,
+        torque_bound=TORQUE,
+        rate_bound=RATE,
+        keep_out=[(BORESIGHT, SUN, HALF)],
+        intervals=a.intervals,
+    )
     qs, ws = (np.asarray(x) for x in resimulate(r.controls, float(r.time), 40))
     boresight = np.asarray(jax.vmap(lambda q: jq.rotate(q, jnp.asarray(BORESIGHT)))(jnp.asarray(qs)))
     sep = np.degrees(np.arccos(np.clip(boresight @ SUN, -1, 1)))
     print(f"converged {bool(r.converged)} in {int(r.iterations)} iterations, KKT residual {float(r.kkt_residual):.1e}")
-    print(f"energy {float(r.cost):.10f} (eigenaxis slew through the Sun: {12 * (np.pi / 2) ** 2 / DURATION ** 3:.6f})")
-    print(f"re-simulated at 10x finer steps: least Sun angle {sep.min():.4f} deg (limit {np.degrees(HALF):.1f}), "
-          f"max rate {np.abs(ws).max():.6f} rad/s (limit {RATE}), max torque {np.abs(np.asarray(r.controls)).max():.6f} "
-          f"(limit {TORQUE[0]})")
+    print(f"energy {float(r.cost):.10f} (eigenaxis slew through the Sun: {12 * (np.pi / 2) ** 2 / DURATION**3:.6f})")
+    print(
+        f"re-simulated at 10x finer steps: least Sun angle {sep.min():.4f} deg (limit {np.degrees(HALF):.1f}), "
+        f"max rate {np.abs(ws).max():.6f} rad/s (limit {RATE}), max torque {np.abs(np.asarray(r.controls)).max():.6f} "
+        f"(limit {TORQUE[0]})"
+    )
     print(f"final attitude error {np.linalg.norm(np.asarray(jq.minus(jnp.asarray(qs[-1]), jnp.asarray(QF)))):.2e} rad")
 
     import matplotlib
@@ -80,8 +96,13 @@ def main():
     e2 = np.cross(SUN, e1)
     phi = np.linspace(0, 2 * np.pi, 200)
     ring = np.cos(HALF) * SUN[None] + np.sin(HALF) * (np.cos(phi)[:, None] * e1[None] + np.sin(phi)[:, None] * e2[None])
-    ax[0].fill(np.degrees(np.arctan2(ring[:, 1], ring[:, 0])), np.degrees(np.arcsin(ring[:, 2])), color="orange",
-               alpha=0.4, label="Sun keep-out (20 deg)")
+    ax[0].fill(
+        np.degrees(np.arctan2(ring[:, 1], ring[:, 0])),
+        np.degrees(np.arcsin(ring[:, 2])),
+        color="orange",
+        alpha=0.4,
+        label="Sun keep-out (20 deg)",
+    )
     ax[0].set(xlabel="azimuth (deg)", ylabel="elevation (deg)", title="boresight on the sky", aspect="equal")
     ax[0].legend(fontsize=8, loc="lower left")
     t = np.asarray(r.ts)

@@ -62,17 +62,21 @@ def main(argv=None):
     progress = not args.no_progress
     options = dict(outer=args.outer, inner=args.inner, progress=progress)
 
-    result = jq.minimum_time_reorientation(inertia, bound, q0, qf, intervals=args.intervals, starts=args.starts,
-                                           **options)
+    result = jq.minimum_time_reorientation(
+        inertia, bound, q0, qf, intervals=args.intervals, starts=args.starts, **options
+    )
     times = np.asarray(result.start_times)
     feasible = times[np.isfinite(times)]
-    print(f"{args.starts} starts on {args.intervals} intervals: {feasible.size} feasible; "
-          f"times {np.array2string(np.sort(feasible), precision=5, separator=', ')}")
+    print(
+        f"{args.starts} starts on {args.intervals} intervals: {feasible.size} feasible; "
+        f"times {np.array2string(np.sort(feasible), precision=5, separator=', ')}"
+    )
     levels = [result]
     for k in range(1, args.levels):
         n = args.intervals * 2**k
-        refined = jq.minimum_time_reorientation(inertia, bound, q0, qf, intervals=n, starts=1, init=levels[-1],
-                                                **dict(options, outer=args.refine_outer))
+        refined = jq.minimum_time_reorientation(
+            inertia, bound, q0, qf, intervals=n, starts=1, init=levels[-1], **dict(options, outer=args.refine_outer)
+        )
         levels.append(refined)
     wall = time.perf_counter() - t0
 
@@ -80,11 +84,14 @@ def main(argv=None):
     print("intervals  time        violation  change from previous  saturated")
     for k, r in enumerate(levels):
         change = "" if k == 0 else f"{100 * (float(r.time) / float(levels[k - 1].time) - 1):+.4f} %"
-        print(f"{args.intervals * 2**k:9d}  {float(r.time):.8f}  {float(r.violation):.1e}  {change:>20}  "
-              f"{100 * saturated_fraction(r):.0f} %")
+        print(
+            f"{args.intervals * 2**k:9d}  {float(r.time):.8f}  {float(r.violation):.1e}  {change:>20}  "
+            f"{100 * saturated_fraction(r):.0f} %"
+        )
     best = levels[-1]
-    print(f"{100 * (1 - float(best.time) / eigenaxis):.2f} % shorter than the eigenaxis manoeuvre; "
-          f"wall time {wall:.1f} s")
+    print(
+        f"{100 * (1 - float(best.time) / eigenaxis):.2f} % shorter than the eigenaxis manoeuvre; wall time {wall:.1f} s"
+    )
 
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

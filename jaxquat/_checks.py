@@ -33,8 +33,7 @@ def as_float_array(x: Any, name: str) -> Array:
     arr = jnp.asarray(x)
     if not jnp.issubdtype(arr.dtype, jnp.floating):
         raise TypeError(
-            f"argument '{name}' must have a floating dtype "
-            f"(float16, bfloat16, float32 or float64), got {arr.dtype}"
+            f"argument '{name}' must have a floating dtype (float16, bfloat16, float32 or float64), got {arr.dtype}"
         )
     return arr
 
@@ -79,9 +78,7 @@ def _check_trailing(arr: Array, name: str, trailing: tuple[int, ...], what: str)
     n = len(trailing)
     if arr.ndim < n or tuple(arr.shape[arr.ndim - n :]) != trailing:
         expected = "(..., " + ", ".join(str(t) for t in trailing) + ")"
-        raise ValueError(
-            f"argument '{name}' must be {what} shaped {expected}, got shape {tuple(arr.shape)}"
-        )
+        raise ValueError(f"argument '{name}' must be {what} shaped {expected}, got shape {tuple(arr.shape)}")
     return arr
 
 
@@ -191,22 +188,13 @@ def broadcast_batch(arrays: list[Array], names: list[str], core_ndims: list[int]
         desc = ", ".join(f"'{n}' {tuple(a.shape)}" for n, a in zip(names, arrays))
         raise ValueError(f"batch shapes do not broadcast: {desc}") from None
     dtype = jnp.result_type(*arrays)
-    return [
-        jnp.broadcast_to(a, batch + a.shape[a.ndim - c :]).astype(dtype)
-        for a, c in zip(arrays, core_ndims)
-    ]
+    return [jnp.broadcast_to(a, batch + a.shape[a.ndim - c :]).astype(dtype) for a, c in zip(arrays, core_ndims)]
 
 
 EULER_SEQUENCES = tuple(
     s
     for case in (str.lower, str.upper)
-    for s in (
-        case(a + b + c)
-        for a in "xyz"
-        for b in "xyz"
-        for c in "xyz"
-        if a != b and b != c
-    )
+    for s in (case(a + b + c) for a in "xyz" for b in "xyz" for c in "xyz" if a != b and b != c)
 )
 
 

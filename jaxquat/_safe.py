@@ -68,7 +68,9 @@ def sinc_cos_of_sq(s: Array) -> tuple[Array, Array]:
     s_small = jnp.where(small, s, 0.0)
     x = jnp.sqrt(jnp.where(small, _TRIG_SWITCH, s))
     sin, cos = _trig.sincos(x)
-    sinc, cos = scalars(jnp.where(small, _horner(s_small, _SINC), sin / x), jnp.where(small, _horner(s_small, _COS), cos))
+    sinc, cos = scalars(
+        jnp.where(small, _horner(s_small, _SINC), sin / x), jnp.where(small, _horner(s_small, _COS), cos)
+    )
     return sinc, cos
 
 
@@ -164,12 +166,40 @@ def const_like(values, like: Array) -> Array:
 # Switch at s = 0.5: the first omitted terms are below 1e-21, and the direct
 # formulas lose at most ~eps/s = 5e-16 to cancellation there.
 _JAC_SWITCH = 0.5
-_ONE_MINUS_COS = (0.5, -1 / 24, 1 / 720, -1 / 40320, 1 / 3628800, -1 / 479001600,
-                  1 / 87178291200, -1 / 20922789888000, 1 / 6402373705728000)
-_X_MINUS_SIN = (1 / 6, -1 / 120, 1 / 5040, -1 / 362880, 1 / 39916800, -1 / 6227020800,
-                1 / 1307674368000, -1 / 355687428096000, 1 / 121645100408832000)
-_JINV = (1 / 12, 1 / 720, 1 / 30240, 1 / 1209600, 2.08767569878681e-08, 5.284190138687493e-10,
-         1.3382536530684679e-11, 3.3896802963225827e-13, 8.586062056277845e-15, 2.174868698558062e-16)
+_ONE_MINUS_COS = (
+    0.5,
+    -1 / 24,
+    1 / 720,
+    -1 / 40320,
+    1 / 3628800,
+    -1 / 479001600,
+    1 / 87178291200,
+    -1 / 20922789888000,
+    1 / 6402373705728000,
+)
+_X_MINUS_SIN = (
+    1 / 6,
+    -1 / 120,
+    1 / 5040,
+    -1 / 362880,
+    1 / 39916800,
+    -1 / 6227020800,
+    1 / 1307674368000,
+    -1 / 355687428096000,
+    1 / 121645100408832000,
+)
+_JINV = (
+    1 / 12,
+    1 / 720,
+    1 / 30240,
+    1 / 1209600,
+    2.08767569878681e-08,
+    5.284190138687493e-10,
+    1.3382536530684679e-11,
+    3.3896802963225827e-13,
+    8.586062056277845e-15,
+    2.174868698558062e-16,
+)
 
 
 def one_minus_cos_over_sq(s: Array) -> Array:
@@ -179,6 +209,7 @@ def one_minus_cos_over_sq(s: Array) -> Array:
 
 def x_minus_sin_over_cube(s: Array) -> Array:
     """``(x - sin x) / x**3`` as a function of ``s = x**2``."""
+
     def direct(u):
         x = jnp.sqrt(u)
         return (x - _trig.sin(x)) / (u * x)
@@ -188,6 +219,7 @@ def x_minus_sin_over_cube(s: Array) -> Array:
 
 def jacobian_inverse_coeff(s: Array) -> Array:
     """``1/x**2 - cot(x/2) / (2 x)`` as a function of ``s = x**2`` (finite for 0 <= x < 2 pi)."""
+
     def direct(u):
         x = jnp.sqrt(u)
         return 1 / u - _trig.cos(x / 2) / (2 * x * _trig.sin(x / 2))

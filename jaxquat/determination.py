@@ -39,7 +39,10 @@ def _frame(v1: Array, v2: Array) -> Array:
 
 
 def triad(
-    b1: Float[Array, "*batch 3"], b2: Float[Array, "*batch 3"], r1: Float[Array, "*batch 3"], r2: Float[Array, "*batch 3"]
+    b1: Float[Array, "*batch 3"],
+    b2: Float[Array, "*batch 3"],
+    r1: Float[Array, "*batch 3"],
+    r2: Float[Array, "*batch 3"],
 ) -> Float[Array, "*batch 4"]:
     """TRIAD (Black 1964; Shuster & Oh 1981): the attitude from two vector pairs.
 
@@ -148,7 +151,8 @@ def _observations(vectors_body, vectors_ref, weights):
     b, r, w = _checks.vector_pairs(vectors_body, vectors_ref, weights, ("vectors_body", "vectors_ref"))
     if b.shape[-2] < 2:
         raise ValueError(
-            f"argument 'vectors_body' must hold n >= 2 vectors (..., n, 3) to fix an attitude, got shape {tuple(b.shape)}"
+            "argument 'vectors_body' must hold n >= 2 vectors (..., n, 3) to fix an attitude, got shape "
+            f"{tuple(b.shape)}"
         )
     return b, r, jnp.ones(b.shape[:-1], b.dtype) if w is None else w
 
@@ -209,5 +213,7 @@ def attitude_covariance(
     work = _checks.working_dtype(b.dtype)
     u, s = u.astype(work), s.astype(work)
     outer = u[..., :, None] * u[..., None, :]
-    info = jnp.einsum("...n,...nij->...ij", 1.0 / (s * s), jnp.broadcast_to(jnp.eye(3, dtype=work), outer.shape) - outer)
+    info = jnp.einsum(
+        "...n,...nij->...ij", 1.0 / (s * s), jnp.broadcast_to(jnp.eye(3, dtype=work), outer.shape) - outer
+    )
     return jnp.linalg.inv(info).astype(b.dtype)

@@ -207,9 +207,7 @@ def _quat_inertia_product(q: Array, inertia: Array) -> Array:
     # Q diag(0, I) Q^T = E^T I E with E = lower three rows of Q^T (the body rate matrix).
     w, v = q[..., 0], q[..., 1:]
     x, y, z = v[..., 0], v[..., 1], v[..., 2]
-    e = jnp.stack(
-        [jnp.stack([-x, w, z, -y], -1), jnp.stack([-y, -z, w, x], -1), jnp.stack([-z, y, -x, w], -1)], -2
-    )
+    e = jnp.stack([jnp.stack([-x, w, z, -y], -1), jnp.stack([-y, -z, w, x], -1), jnp.stack([-z, y, -x, w], -1)], -2)
     return jnp.swapaxes(e, -1, -2) @ inertia @ e
 
 

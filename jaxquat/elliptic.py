@@ -45,7 +45,8 @@ def _tiny(x: Array) -> Array:
 
 
 def _agm(m: Array, mc: Array) -> tuple[Array, Array]:
-    """``(a_n, b_n, c_n)`` for ``n = 1..N`` (stacked on a new leading axis) of the AGM of ``(1, sqrt(mc))``, and ``a_N``."""
+    """``(a_n, b_n, c_n)`` for ``n = 1..N`` (stacked on a new leading axis) of the AGM of
+    ``(1, sqrt(mc))``, and ``a_N``."""
     b0 = jnp.sqrt(jnp.maximum(mc, _tiny(mc)))
     first = ((1 + b0) / 2, jnp.sqrt(b0), m / (2 * (1 + b0)))  # c_1 = (1 - b0)/2 without cancellation
 
@@ -68,6 +69,7 @@ def _amplitude(u: Array, steps: Array, a_last: Array) -> Array:
     ``a_n^2 - c_n^2 = b_n^2`` it is written as the well-conditioned
     ``atan2(c_n sin phi, hypot(a_n cos phi, b_n sin phi))``.
     """
+
     def step(phi, abc):
         a, b, c = abc
         s, co = _trig.sincos(phi)

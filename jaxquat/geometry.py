@@ -59,7 +59,9 @@ def mean(q: Float[Array, "*batch n 4"], weights: Float[Array, "*batch n"] | None
     """
     q = _checks.quat(q)
     if q.ndim < 2:
-        raise ValueError(f"argument 'q' must be shaped (..., n, 4) with n rotations to average, got shape {tuple(q.shape)}")
+        raise ValueError(
+            f"argument 'q' must be shaped (..., n, 4) with n rotations to average, got shape {tuple(q.shape)}"
+        )
     _checks.nonempty(q, "q", -2, "rotation to average (n >= 1 in (..., n, 4))")
     if weights is None:
         return _top_eigenvector(jnp.einsum("...ni,...nj->...ij", q, q))

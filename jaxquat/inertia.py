@@ -107,9 +107,7 @@ def _moments(inertia: Array) -> Array:
     return jnp.linalg.eigvalsh(0.5 * (work + jnp.swapaxes(work, -1, -2)))
 
 
-def is_valid_inertia(
-    inertia: Float[Array, "*batch 3 3"], rtol: float | None = None
-) -> Bool[Array, "*batch"]:
+def is_valid_inertia(inertia: Float[Array, "*batch 3 3"], rtol: float | None = None) -> Bool[Array, "*batch"]:
     """Whether each tensor is a physical inertia: finite, symmetric, positive definite, triangle inequality.
 
     With ``s`` the largest absolute entry and ``I1 <= I2 <= I3`` the principal
@@ -121,7 +119,9 @@ def is_valid_inertia(
     inertia = _checks.inertia(inertia)
     rtol = _default_rtol(inertia.dtype) if rtol is None else rtol
     finite = jnp.all(jnp.isfinite(inertia), axis=(-2, -1))
-    clean = jnp.where(finite[..., None, None], inertia, jnp.broadcast_to(jnp.eye(3, dtype=inertia.dtype), inertia.shape))
+    clean = jnp.where(
+        finite[..., None, None], inertia, jnp.broadcast_to(jnp.eye(3, dtype=inertia.dtype), inertia.shape)
+    )
     scale = jnp.max(jnp.abs(clean), axis=(-2, -1))
     asym = jnp.max(jnp.abs(clean - jnp.swapaxes(clean, -1, -2)), axis=(-2, -1))
     lam = _moments(clean)
@@ -194,7 +194,7 @@ def _solve(inertia: Array, b: Array) -> Array:
     c22 = m00 * m11 - m01 * m01
     det = m00 * c00 + m01 * c01 + m02 * c02
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return jnp.stack(
-        [c00 * b0 + c01 * b1 + c02 * b2, c01 * b0 + c11 * b1 + c12 * b2, c02 * b0 + c12 * b1 + c22 * b2], -1
-    ) / det[..., None]
-
+    return (
+        jnp.stack([c00 * b0 + c01 * b1 + c02 * b2, c01 * b0 + c11 * b1 + c12 * b2, c02 * b0 + c12 * b1 + c22 * b2], -1)
+        / det[..., None]
+    )

@@ -20,8 +20,9 @@ continuity ``dx_{k+1} = A_k dx_k + B_k du_k + C_k dp + d_k`` is eliminated by a 
 recursion, leaving a dense problem in ``(du, dp)`` (``N nu + np`` unknowns) with only the
 terminal conditions as constraints; that one is solved by the null-space method, and the
 reduced Hessian's eigenvalues are replaced by their absolute values (at least
-``max(1e-8, 100 eps max|eigenvalue|)``), so every step is a descent direction (the inertia correction; a strict local minimum has a positive definite reduced
-Hessian, where this changes nothing and Newton converges quadratically). The continuity
+``max(1e-8, 100 eps max|eigenvalue|)``), so every step is a descent direction (the inertia
+correction; a strict local minimum has a positive definite reduced Hessian, where this changes
+nothing and Newton converges quadratically). The continuity
 multipliers (the discrete costates) come from the backward recursion. Steps keep
 ``s, lambda > 0`` by the fraction-to-the-boundary rule and are accepted by a filter line
 search on (constraint violation, barrier objective) with trial steps ``alpha 2^-j`` evaluated
@@ -107,7 +108,7 @@ _EIG_FLOOR = 1e-8  # reduced-Hessian eigenvalues below it (or below 100 eps |H|)
 
 
 def _split(z, nx, nu):
-    return z[:nx], z[nx:nx + nu], z[nx + nu:]
+    return z[:nx], z[nx : nx + nu], z[nx + nu :]
 
 
 def solve_shooting(
@@ -185,16 +186,20 @@ def solve_shooting(
         rx = gk[:, :nx]
         rX = jnp.concatenate([rx[1:], jnp.zeros((1, nx), dtype)]) - st.y  # x_k (k >= 1) ends defect k-1
         rX = rX.at[-1].add(E.T @ st.yT)
-        rU = gk[:, nx:nx + nu]
-        rp = jnp.sum(gk[:, nx + nu:], axis=0) + dphi
+        rU = gk[:, nx : nx + nu]
+        rp = jnp.sum(gk[:, nx + nu :], axis=0) + dphi
         return rX, rU, rp
 
     def errors(st, F, g, e, rX, rU, rp, mu):
         """Waechter & Biegler's scaled optimality error for the barrier parameter ``mu``."""
         n_mult = N * nx + e.shape[0] + N * ng
         s_max = 100.0
-        sd = jnp.maximum(s_max, (jnp.sum(jnp.abs(st.y)) + jnp.sum(jnp.abs(st.yT)) + jnp.sum(jnp.abs(st.lam)))
-                         / max(n_mult, 1)) / s_max
+        sd = (
+            jnp.maximum(
+                s_max, (jnp.sum(jnp.abs(st.y)) + jnp.sum(jnp.abs(st.yT)) + jnp.sum(jnp.abs(st.lam))) / max(n_mult, 1)
+            )
+            / s_max
+        )
         sc = jnp.maximum(s_max, jnp.sum(jnp.abs(st.lam)) / max(N * ng, 1)) / s_max
         dual = jnp.maximum(jnp.max(jnp.abs(rX)), jnp.maximum(jnp.max(jnp.abs(rU)), jnp.max(jnp.abs(rp), initial=0.0)))
         primal = jnp.maximum(jnp.max(jnp.abs(F - st.X)), jnp.max(jnp.abs(e), initial=0.0))
@@ -203,7 +208,7 @@ def solve_shooting(
         return jnp.maximum(jnp.maximum(dual / sd, primal), comp / sc), jnp.maximum(jnp.maximum(dual, primal), comp)
 
     def newton(st, mu, F, g, Fz, lz, gz, W, e, E, WT, dphi, d2phi):
-        A, B, C = Fz[:, :, :nx], Fz[:, :, nx:nx + nu], Fz[:, :, nx + nu:]
+        A, B, C = Fz[:, :, :nx], Fz[:, :, nx : nx + nu], Fz[:, :, nx + nu :]
         d = F - st.X
         r_i = g + st.s
         sigma = st.lam / st.s
@@ -239,7 +244,9 @@ def solve_shooting(
         py = jax.scipy.linalg.solve_triangular(R1.T, b, lower=True)
         Hr = Zn.T @ H @ Zn
         ev, vec = jnp.linalg.eigh(0.5 * (Hr + Hr.T))
-        ev = jnp.maximum(jnp.abs(ev), jnp.maximum(_EIG_FLOOR, 100 * jnp.finfo(dtype).eps * jnp.max(jnp.abs(ev), initial=1.0)))
+        ev = jnp.maximum(
+            jnp.abs(ev), jnp.maximum(_EIG_FLOOR, 100 * jnp.finfo(dtype).eps * jnp.max(jnp.abs(ev), initial=1.0))
+        )
         rhs = -Zn.T @ (h + H @ (Y @ py))
         pz = vec @ ((vec.T @ rhs) / ev)
         dV = Y @ py + Zn @ pz
@@ -261,8 +268,8 @@ def solve_shooting(
         gdz = jnp.einsum("kiz,kz->ki", gz, dz)
         lam_new = lam_t + sigma * gdz
         ds = -r_i - gdz
-        dU = dV[:N * nu].reshape(N, nu)
-        dp = dV[N * nu:]
+        dU = dV[: N * nu].reshape(N, nu)
+        dp = dV[N * nu :]
         slope = jnp.sum(lz * dz) + dphi @ dp - mu * jnp.sum(ds / st.s)  # d/d alpha of the barrier objective
         return dX, dU, dp, ds, lam_new - st.lam, y_new, yT_new, slope
 
@@ -276,8 +283,9 @@ def solve_shooting(
         err0, kkt = errors(st, F, g, e, rX, rU, rp, 0.0)
         err_mu, _ = errors(st, F, g, e, rX, rU, rp, st.mu)
         lower = tol / 10
-        new_mu = jnp.where(err_mu <= _KAPPA_EPS * st.mu, jnp.maximum(lower, jnp.minimum(0.2 * st.mu, st.mu ** 1.5)),
-                           st.mu)
+        new_mu = jnp.where(
+            err_mu <= _KAPPA_EPS * st.mu, jnp.maximum(lower, jnp.minimum(0.2 * st.mu, st.mu**1.5)), st.mu
+        )
         filt = jnp.where(new_mu < st.mu, jnp.full_like(st.filt, jnp.inf).at[:, 1].set(-jnp.inf), st.filt)
         mu = new_mu
         dX, dU, dp, ds, dlam, y_new, yT_new, slope = newton(st, mu, F, g, Fz, lz, gz, W, e, E, WT, dphi, d2phi)
@@ -287,9 +295,10 @@ def solve_shooting(
         theta0, phi0 = merit(st.X, st.s, F, cost, g, e, phi, mu)  # the current point: no second evaluation
         alphas = a_max * 0.5 ** jnp.arange(_TRIALS, dtype=dtype)
         thetas, phis = jax.vmap(lambda a: measures(st.X + a * dX, st.U + a * dU, st.p + a * dp, st.s + a * ds, mu))(
-            alphas)
+            alphas
+        )
         theta_min = 1e-4 * jnp.maximum(1.0, theta0)
-        switching = (theta0 <= theta_min) & (slope < 0) & (alphas * (-slope) ** 2.3 > theta0 ** 1.1)
+        switching = (theta0 <= theta_min) & (slope < 0) & (alphas * (-slope) ** 2.3 > theta0**1.1)
         armijo = phis <= phi0 + _ETA * alphas * slope
         sufficient = (thetas <= (1 - _GAMMA) * theta0) | (phis <= phi0 - _GAMMA * theta0)
         in_filter = jnp.all((thetas[:, None] < filt[None, :, 0]) | (phis[:, None] < filt[None, :, 1]), axis=1)
@@ -307,10 +316,36 @@ def solve_shooting(
         step_ok = jnp.isfinite(a) & jnp.all(jnp.isfinite(dX)) & jnp.all(jnp.isfinite(dU))
         converged = err0 <= tol
         if _DEBUG:
-            jax.debug.print("it {i} mu {m:.1e} err0 {e:.2e} errmu {em:.2e} theta {t:.2e} phi {f:.6e} a {a:.2e} amax {am:.2e} j {j} slope {sl:.2e} sw {sw}",
-                            i=st.it, m=mu, e=err0, em=err_mu, t=theta0, f=phi0, a=a, am=a_max, j=j, sl=slope, sw=switching[j])
-        new = _State(st.X + a * dX, st.U + a * dU, st.p + a * dp, s, lam, st.y + a * (y_new - st.y),
-                     st.yT + a * (yT_new - st.yT), mu, filt, st.it + 1, kkt, jnp.asarray(False), converged)
+            jax.debug.print(
+                "it {i} mu {m:.1e} err0 {e:.2e} errmu {em:.2e} theta {t:.2e} phi {f:.6e} a {a:.2e} amax "
+                "{am:.2e} j {j} slope {sl:.2e} sw {sw}",
+                i=st.it,
+                m=mu,
+                e=err0,
+                em=err_mu,
+                t=theta0,
+                f=phi0,
+                a=a,
+                am=a_max,
+                j=j,
+                sl=slope,
+                sw=switching[j],
+            )
+        new = _State(
+            st.X + a * dX,
+            st.U + a * dU,
+            st.p + a * dp,
+            s,
+            lam,
+            st.y + a * (y_new - st.y),
+            st.yT + a * (yT_new - st.yT),
+            mu,
+            filt,
+            st.it + 1,
+            kkt,
+            jnp.asarray(False),
+            converged,
+        )
         stop = st._replace(kkt=kkt, done=jnp.asarray(True), converged=converged)  # the iterate stays
         return jax.tree.map(lambda n, o: jnp.where(converged | ~step_ok, o, n), new, stop)
 
@@ -318,12 +353,37 @@ def solve_shooting(
     mu_start = jnp.asarray(mu0, dtype)
     filt0 = jnp.full((_FILTER, 2), jnp.inf, dtype).at[:, 1].set(-jnp.inf)
     ne = jax.eval_shape(lambda: terminal(X[-1], data)).shape[0]
-    st = _State(X, U, p, s0, mu_start / s0, jnp.zeros((N, nx), dtype), jnp.zeros(ne, dtype), mu_start, filt0,
-                jnp.asarray(0), jnp.asarray(jnp.inf, dtype), jnp.asarray(False), jnp.asarray(False))
+    st = _State(
+        X,
+        U,
+        p,
+        s0,
+        mu_start / s0,
+        jnp.zeros((N, nx), dtype),
+        jnp.zeros(ne, dtype),
+        mu_start,
+        filt0,
+        jnp.asarray(0),
+        jnp.asarray(jnp.inf, dtype),
+        jnp.asarray(False),
+        jnp.asarray(False),
+    )
     st = jax.lax.while_loop(lambda st: (~st.done) & (st.it < max_iter), body, st)
     F, cost, g = stages(st.X, st.U, st.p)
     e = terminal(st.X[-1], data)
-    violation = jnp.maximum(jnp.maximum(jnp.max(jnp.abs(F - st.X)), jnp.max(jnp.abs(e), initial=0.0)),
-                            jnp.max(g, initial=0.0))
-    return ShootingSolution(jnp.concatenate([x0[None], st.X]), st.U, st.p, st.y, st.yT, st.lam,
-                            objective(st.p, data) + jnp.sum(cost), violation, st.kkt, st.it, st.converged)
+    violation = jnp.maximum(
+        jnp.maximum(jnp.max(jnp.abs(F - st.X)), jnp.max(jnp.abs(e), initial=0.0)), jnp.max(g, initial=0.0)
+    )
+    return ShootingSolution(
+        jnp.concatenate([x0[None], st.X]),
+        st.U,
+        st.p,
+        st.y,
+        st.yT,
+        st.lam,
+        objective(st.p, data) + jnp.sum(cost),
+        violation,
+        st.kkt,
+        st.it,
+        st.converged,
+    )

@@ -58,7 +58,17 @@ from .interpolate import _slerp
 from .kinematics import _vec_rate
 
 __all__ = [
-    "AbstractLeafInterpolation", "SlerpInterpolation", "LocalPolynomialInterpolation", "BodyRateTerm", "AbstractLieSolver", "AbstractRKMK", "LieEuler", "RKMK4", "RKMK45", "RKMKTsit5", "RKMK8",
+    "AbstractLeafInterpolation",
+    "SlerpInterpolation",
+    "LocalPolynomialInterpolation",
+    "BodyRateTerm",
+    "AbstractLieSolver",
+    "AbstractRKMK",
+    "LieEuler",
+    "RKMK4",
+    "RKMK45",
+    "RKMKTsit5",
+    "RKMK8",
 ]
 
 _RESULTS = diffrax.RESULTS
@@ -73,7 +83,8 @@ class QuaternionMask:
         if bad or not leaves:
             raise TypeError(
                 "argument 'quaternions' must be a pytree prefix of the ODE state with a bool on every leaf "
-                f"(True where the leaf is a unit quaternion (..., 4)), got {prefix!r}")
+                f"(True where the leaf is a unit quaternion (..., 4)), got {prefix!r}"
+            )
         self.leaves = tuple(bool(x) for x in leaves)
 
     @classmethod
@@ -117,7 +128,8 @@ def leaf_flags(mask: QuaternionMask | None, y, solver: str = "solver") -> tuple[
             return (True, False) + (False,) * len(jax.tree.leaves(y[1:]))
         raise TypeError(
             f"{solver} without quaternions= advances the rigid-body state (q (..., 4), w (..., 3)) only; for any "
-            "other state name its quaternion leaves, e.g. quaternions={'r': False, 'v': False, 'q': True, 'w': False}")
+            "other state name its quaternion leaves, e.g. quaternions={'r': False, 'v': False, 'q': True, 'w': False}"
+        )
     flags = mask.broadcast(y)
     if flags is None and isinstance(y, tuple) and len(y) == 4:
         inner = mask.broadcast(y[0])
@@ -126,13 +138,18 @@ def leaf_flags(mask: QuaternionMask | None, y, solver: str = "solver") -> tuple[
     if flags is None:
         raise ValueError(
             f"argument 'quaternions' ({mask!r}) must be a pytree prefix of the ODE state, whose structure is "
-            f"{jax.tree.structure(y)}")
+            f"{jax.tree.structure(y)}"
+        )
     for flag, leaf in zip(flags, jax.tree.leaves(y)):
-        if flag and (not hasattr(leaf, "shape") or leaf.shape[-1:] != (4,)
-                     or not jnp.issubdtype(jnp.result_type(leaf), jnp.floating)):
+        if flag and (
+            not hasattr(leaf, "shape")
+            or leaf.shape[-1:] != (4,)
+            or not jnp.issubdtype(jnp.result_type(leaf), jnp.floating)
+        ):
             raise ValueError(
                 "argument 'quaternions' flags a leaf that is not a floating quaternion array shaped (..., 4): "
-                f"got shape {getattr(leaf, 'shape', None)} and dtype {getattr(leaf, 'dtype', type(leaf).__name__)}")
+                f"got shape {getattr(leaf, 'shape', None)} and dtype {getattr(leaf, 'dtype', type(leaf).__name__)}"
+            )
     return flags
 
 
@@ -210,8 +227,9 @@ class LocalPolynomialInterpolation(AbstractLeafInterpolation):
     def leaves_at(self, s, flags, leaves0):
         mids = [None] * len(leaves0) if self.mid is None else jax.tree.leaves(self.mid)
         out = []
-        for flag, y, d, a, b, m in zip(flags, leaves0, *(jax.tree.leaves(x) for x in (self.incr, self.d0, self.d1)),
-                                       mids):
+        for flag, y, d, a, b, m in zip(
+            flags, leaves0, *(jax.tree.leaves(x) for x in (self.incr, self.d0, self.d1)), mids
+        ):
             si = jnp.asarray(s, y.dtype)
             if m is None:  # cubic Hermite
                 c4, c3, c2 = 0.0, a + b - 2 * d, 3 * d - 2 * a - b
@@ -319,17 +337,22 @@ class AbstractLieSolver(diffrax.AbstractSolver):
         body rate ``w_b = 2 vec(q* qdot)``. A vector field may return the body rate ``(..., 3)``
         itself on a quaternion leaf (the Lie-algebra form, :class:`BodyRateTerm`: no conversion,
         no rounding from it)."""
+
         def tangent(t, y):
             out = jax.tree.leaves(terms.vf(t, y, args))
-            return [body_rate(q, v) if flag and v.shape[-1] == 4 else v
-                    for flag, q, v in zip(flags, jax.tree.leaves(y), out)]
+            return [
+                body_rate(q, v) if flag and v.shape[-1] == 4 else v
+                for flag, q, v in zip(flags, jax.tree.leaves(y), out)
+            ]
+
         return tangent
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         flags = leaf_flags(self.quaternions, y0, type(self).__name__)
         h = terms.contr(t0, t1)
-        y1, y_error, dense, solver_state = self.lie_step(self.tangent_field(terms, args, flags), t0, t1, h, y0, flags,
-                                                         solver_state, made_jump)
+        y1, y_error, dense, solver_state = self.lie_step(
+            self.tangent_field(terms, args, flags), t0, t1, h, y0, flags, solver_state, made_jump
+        )
         dense = dict(y0=y0, y1=y1) if dense is None else dense
         return y1, y_error, dense, solver_state, _RESULTS.successful
 
@@ -373,8 +396,9 @@ class AbstractRKMK(AbstractLieSolver):
         coords = [jnp.zeros(x.shape[:-1] + (3,), x.dtype) if f else x for f, x in zip(flags, leaves)]
 
         def point(incr):
-            return jax.tree.unflatten(tree, [_multiply(x, _from_rotvec(d)) if f else x + d
-                                             for f, x, d in zip(flags, leaves, incr)])
+            return jax.tree.unflatten(
+                tree, [_multiply(x, _from_rotvec(d)) if f else x + d for f, x, d in zip(flags, leaves, incr)]
+            )
 
         def slope(theta, g):
             return [dexpinv(th, gi, order) if f else gi for f, th, gi in zip(flags, theta, g)]
@@ -407,17 +431,27 @@ class AbstractRKMK(AbstractLieSolver):
         if isinstance(self, diffrax.AbstractAdaptiveSolver):
             err = weigh(tab.b_error, ks)
             # on a quaternion leaf q1 - q_n Exp(theta_1 - e) = q1 (0, e/2) + O(|e|^2): no second Exp
-            y_error = jax.tree.unflatten(tree, [
-                _multiply(q, jnp.concatenate([jnp.zeros_like(e[..., :1]), 0.5 * e], -1)) if f else e
-                for f, q, e in zip(flags, y1, err)])
+            y_error = jax.tree.unflatten(
+                tree,
+                [
+                    _multiply(q, jnp.concatenate([jnp.zeros_like(e[..., :1]), 0.5 * e], -1)) if f else e
+                    for f, q, e in zip(flags, y1, err)
+                ],
+            )
         y1 = jax.tree.unflatten(tree, y1)
         if not tab.fsal:
             return y1, y_error, None, None
         # FSAL: the last stage is the tangent at y1, so the end slopes of the local polynomial come free
         k1 = slope([d if f else None for f, d in zip(flags, incr)], g_last)
         mid = None if self.mid_weights is None else jax.tree.unflatten(tree, weigh(self.mid_weights, ks))
-        dense = dict(y0=y0, y1=y1, incr=jax.tree.unflatten(tree, incr), d0=jax.tree.unflatten(tree, [k * h.astype(k.dtype) for k in k0]),
-                     d1=jax.tree.unflatten(tree, [k * h.astype(k.dtype) for k in k1]), mid=mid)
+        dense = dict(
+            y0=y0,
+            y1=y1,
+            incr=jax.tree.unflatten(tree, incr),
+            d0=jax.tree.unflatten(tree, [k * h.astype(k.dtype) for k in k0]),
+            d1=jax.tree.unflatten(tree, [k * h.astype(k.dtype) for k in k1]),
+            mid=mid,
+        )
         return y1, y_error, dense, g_last
 
 
@@ -443,8 +477,11 @@ def midpoint_weights(solver_cls: type[diffrax.AbstractRungeKutta]) -> np.ndarray
 def _tableau(c, a_lower, b_sol, b_error=None) -> diffrax.ButcherTableau:
     b_sol = np.asarray(b_sol, dtype=np.float64)
     return diffrax.ButcherTableau(
-        c=np.asarray(c, dtype=np.float64), a_lower=tuple(np.asarray(r, dtype=np.float64) for r in a_lower),
-        b_sol=b_sol, b_error=np.zeros_like(b_sol) if b_error is None else np.asarray(b_error, dtype=np.float64))
+        c=np.asarray(c, dtype=np.float64),
+        a_lower=tuple(np.asarray(r, dtype=np.float64) for r in a_lower),
+        b_sol=b_sol,
+        b_error=np.zeros_like(b_sol) if b_error is None else np.asarray(b_error, dtype=np.float64),
+    )
 
 
 class LieEuler(AbstractLieSolver):

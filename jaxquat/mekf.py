@@ -184,6 +184,7 @@ def _update_quaternion(q, bias, p, q_meas, sigma):
 def _apply_update(update, signature: str, args) -> tuple[FilterState, FilterUpdate]:
     """A single-filter update kernel broadcast over the batch by ``jnp.vectorize`` (which maps
     over flat outputs only, hence the flattening), its result as ``(FilterState, FilterUpdate)``."""
+
     def flat(*a):
         return tuple(x for part in update(*a) for x in part)
 
@@ -246,7 +247,8 @@ def _vectors(body: object, ref: object, leading: str) -> tuple[Array, Array]:
     if not same:
         raise ValueError(
             f"arguments 'vectors_body' and 'vectors_ref' must be shaped {shape} with the same "
-            f"{leading + ', ' if leading else ''}m (or 1 in 'vectors_ref'), got {tuple(body.shape)} and {tuple(ref.shape)}"
+            f"{leading + ', ' if leading else ''}m (or 1 in 'vectors_ref'), got {tuple(body.shape)} and "
+            f"{tuple(ref.shape)}"
         )
     ref = jnp.broadcast_to(ref, ref.shape[:-core] + body.shape[-core:])
     return body, ref
@@ -293,8 +295,11 @@ def _predict_args(state, gyro, dt, gyro_noise, bias_noise) -> list[Array]:
     q, bias, p = _state(state)
     gyro = _checks.vec3(gyro, "gyro")
     dt, sv, su = _checks.scalar_like(dt, "dt"), _noise(gyro_noise, "gyro_noise"), _noise(bias_noise, "bias_noise")
-    return _checks.broadcast_batch([q, bias, p, gyro, dt, sv, su], ["q", "bias", "P", "gyro", "dt", "gyro_noise",
-                                   "bias_noise"], [1, 1, 2, 1, 0, 0, 0])
+    return _checks.broadcast_batch(
+        [q, bias, p, gyro, dt, sv, su],
+        ["q", "bias", "P", "gyro", "dt", "gyro_noise", "bias_noise"],
+        [1, 1, 2, 1, 0, 0, 0],
+    )
 
 
 _QUATERNION_SIGNATURE = "(4),(3),(6,6),(4),()->(4),(3),(6,6),(1,3),(),(),()"
@@ -310,8 +315,11 @@ def _update_args(state, vectors_body, vectors_ref, vector_noise) -> list[Array]:
     q, bias, p = _state(state)
     body, ref = _vectors(vectors_body, vectors_ref, "")
     sigma = _sigma(vector_noise, "vector_noise", body.shape[-2])
-    return _checks.broadcast_batch([q, bias, p, body, ref, sigma],
-                                   ["q", "bias", "P", "vectors_body", "vectors_ref", "vector_noise"], [1, 1, 2, 2, 2, 1])
+    return _checks.broadcast_batch(
+        [q, bias, p, body, ref, sigma],
+        ["q", "bias", "P", "vectors_body", "vectors_ref", "vector_noise"],
+        [1, 1, 2, 2, 2, 1],
+    )
 
 
 def _sigma(noise: object, name: str, m: int) -> Array:
@@ -319,8 +327,10 @@ def _sigma(noise: object, name: str, m: int) -> Array:
     if s.ndim == 0:
         return jnp.broadcast_to(s, (m,))
     if s.shape[-1] != m:
-        raise ValueError(f"argument '{name}' must be a scalar or shaped (..., m) with m = {m} (one per sensor), "
-                         f"got shape {tuple(s.shape)}")
+        raise ValueError(
+            f"argument '{name}' must be a scalar or shaped (..., m) with m = {m} (one per sensor), "
+            f"got shape {tuple(s.shape)}"
+        )
     return s
 
 
@@ -389,7 +399,9 @@ def mekf(
     with respect to the noise parameters (the innovations' log-likelihood is in the result).
     """
     args = _record(q0, bias0, P0, dt, gyro, vectors_body, vectors_ref, vector_noise, gyro_noise, bias_noise)
-    return FilterResult(*jnp.vectorize(functools.partial(_scan, _predict, _update_vectors), signature=_RECORD_SIGNATURE)(*args))
+    return FilterResult(
+        *jnp.vectorize(functools.partial(_scan, _predict, _update_vectors), signature=_RECORD_SIGNATURE)(*args)
+    )
 
 
 def _record(q0, bias0, P0, dt, gyro, vectors_body, vectors_ref, vector_noise, gyro_noise, bias_noise) -> list[Array]:
@@ -397,7 +409,9 @@ def _record(q0, bias0, P0, dt, gyro, vectors_body, vectors_ref, vector_noise, gy
     q0, bias0, p0 = mekf_init(q0, bias0, P0)
     gyro = _checks.vec3(gyro, "gyro")
     if gyro.ndim < 2 or gyro.shape[-2] == 0:
-        raise ValueError(f"argument 'gyro' must be shaped (..., n, 3) with n >= 1 samples, got shape {tuple(gyro.shape)}")
+        raise ValueError(
+            f"argument 'gyro' must be shaped (..., n, 3) with n >= 1 samples, got shape {tuple(gyro.shape)}"
+        )
     body, ref = _vectors(vectors_body, vectors_ref, "n")
     if body.shape[-3] != gyro.shape[-2]:
         raise ValueError(
@@ -406,6 +420,18 @@ def _record(q0, bias0, P0, dt, gyro, vectors_body, vectors_ref, vector_noise, gy
         )
     sigma = _sigma(vector_noise, "vector_noise", body.shape[-2])
     dt, sv, su = _checks.scalar_like(dt, "dt"), _noise(gyro_noise, "gyro_noise"), _noise(bias_noise, "bias_noise")
-    names = ["q0", "bias0", "P0", "dt", "gyro", "vectors_body", "vectors_ref", "vector_noise", "gyro_noise", "bias_noise"]
-    return _checks.broadcast_batch([q0, bias0, p0, dt, gyro, body, ref, sigma, sv, su], names,
-                                   [1, 1, 2, 0, 2, 3, 3, 1, 0, 0])
+    names = [
+        "q0",
+        "bias0",
+        "P0",
+        "dt",
+        "gyro",
+        "vectors_body",
+        "vectors_ref",
+        "vector_noise",
+        "gyro_noise",
+        "bias_noise",
+    ]
+    return _checks.broadcast_batch(
+        [q0, bias0, p0, dt, gyro, body, ref, sigma, sv, su], names, [1, 1, 2, 0, 2, 3, 3, 1, 0, 0]
+    )

@@ -80,7 +80,9 @@ class Quadrotor(eqx.Module):
         q, v, w = y["q"], y["v"], y["w"]
         thrust, torque = self.control(t, y, args)
         up = jnp.zeros_like(v).at[..., 2].set(1)
-        accel = (jnp.asarray(thrust, v.dtype)[..., None] / self.mass) * _rotate(q, up) - self.gravity * up - self.drag * v
+        accel = (
+            (jnp.asarray(thrust, v.dtype)[..., None] / self.mass) * _rotate(q, up) - self.gravity * up - self.drag * v
+        )
         return {"r": v, "v": accel, "q": _qdot_from_omega(q, w, "body"), "w": _euler_body(self.inertia, w, torque)}
 
 
@@ -117,23 +119,32 @@ class ReactionWheelSpacecraft(eqx.Module):
     wheel_momentum_limit: Array | None
     quaternions: ClassVar[dict[str, bool]] = {"q": True, "w": False, "h": False}
 
-    def __init__(self, inertia: Any, axes: Any, control: Callable, wheel_torque_limit: Any = None,
-                 wheel_momentum_limit: Any = None):
+    def __init__(
+        self,
+        inertia: Any,
+        axes: Any,
+        control: Callable,
+        wheel_torque_limit: Any = None,
+        wheel_momentum_limit: Any = None,
+    ):
         self.inertia = _validated(inertia)
         axes = _checks.as_float_array(axes, "axes")
         if axes.ndim != 2 or axes.shape[1] != 3 or axes.shape[0] < 1:
-            raise ValueError(f"argument 'axes' must be the wheels' spin axes shaped (n, 3), n >= 1, got shape "
-                             f"{tuple(axes.shape)}")
+            raise ValueError(
+                f"argument 'axes' must be the wheels' spin axes shaped (n, 3), n >= 1, got shape {tuple(axes.shape)}"
+            )
         norms = jnp.linalg.norm(axes, axis=-1, keepdims=True)
         lengths = _checks.concrete(norms[:, 0])
         if lengths is not None and not (lengths > 0).all():
             raise ValueError(f"argument 'axes' must be nonzero spin axes, got rows of length {lengths.tolist()}")
         self.axes = axes / norms
         self.control = _control(control)
-        self.wheel_torque_limit = None if wheel_torque_limit is None else _limit(wheel_torque_limit,
-                                                                                   "wheel_torque_limit", axes)
-        self.wheel_momentum_limit = None if wheel_momentum_limit is None else _limit(wheel_momentum_limit,
-                                                                                       "wheel_momentum_limit", axes)
+        self.wheel_torque_limit = (
+            None if wheel_torque_limit is None else _limit(wheel_torque_limit, "wheel_torque_limit", axes)
+        )
+        self.wheel_momentum_limit = (
+            None if wheel_momentum_limit is None else _limit(wheel_momentum_limit, "wheel_momentum_limit", axes)
+        )
 
     def wheel_torque(self, u: Array, h: Array) -> Array:
         """The commanded wheel torques ``u`` after the torque and momentum limits."""
@@ -159,8 +170,9 @@ class ReactionWheelSpacecraft(eqx.Module):
 def _limit(x: Any, name: str, axes: Array) -> Array:
     arr = _checks.as_float_array(x, name)
     if arr.shape not in ((), (axes.shape[0],)):
-        raise ValueError(f"argument '{name}' must be a scalar or shaped (n,) = ({axes.shape[0]},), got shape "
-                         f"{tuple(arr.shape)}")
+        raise ValueError(
+            f"argument '{name}' must be a scalar or shaped (n,) = ({axes.shape[0]},), got shape {tuple(arr.shape)}"
+        )
     value = _checks.concrete(arr)
     if value is not None and not (value > 0).all():
         raise ValueError(f"argument '{name}' must be positive, got {value}")

@@ -43,8 +43,12 @@ from .interior_point import ShootingProblem, solve_shooting
 from .lie import minus, plus
 from .lie_solvers import RKMK4, BodyRateTerm
 
-__all__ = ["ConstrainedReorientation", "minimum_energy_reorientation", "minimum_fuel_reorientation",
-           "constrained_minimum_time"]
+__all__ = [
+    "ConstrainedReorientation",
+    "minimum_energy_reorientation",
+    "minimum_fuel_reorientation",
+    "constrained_minimum_time",
+]
 
 
 class ConstrainedReorientation(NamedTuple):
@@ -117,8 +121,15 @@ def held_torque_states(inertia, q0, w0, time, u, substeps: int):
         return y[1], _euler_body(inertia, y[1], u_k)
 
     ts = jnp.linspace(0.0, 1.0, u.shape[0] * substeps + 1, dtype=w0.dtype) * time
-    return solve_fixed_steps(RKMK4(), BodyRateTerm(field), ts, (q0, w0), substeps=1,
-                             interval_args=jnp.repeat(u, substeps, axis=0), checkpoint=False)
+    return solve_fixed_steps(
+        RKMK4(),
+        BodyRateTerm(field),
+        ts,
+        (q0, w0),
+        substeps=1,
+        interval_args=jnp.repeat(u, substeps, axis=0),
+        checkpoint=False,
+    )
 
 
 def _path(cfg: _Config, data: _Data, qs, ws, c, p, k):
@@ -147,7 +158,7 @@ def _path(cfg: _Config, data: _Data, qs, ws, c, p, k):
 def _cost_scale(cfg: _Config, data: _Data):
     """The running cost's unit (the NLP minimises cost / scale): ``T sum b_i`` for fuel,
     ``T sum u_ref_i^2`` for energy."""
-    return data.duration * (jnp.sum(data.u_ref) if cfg.fuel else jnp.sum(data.u_ref ** 2))
+    return data.duration * (jnp.sum(data.u_ref) if cfg.fuel else jnp.sum(data.u_ref**2))
 
 
 def _problem(cfg: _Config) -> ShootingProblem:
@@ -199,7 +210,7 @@ def _guess(cfg: _Config, data: _Data):
         accel = jnp.where(sm < 0.5, 4.0, -4.0)
         rate_n = jnp.where(s < 0.5, 4 * s, 4 * (1 - s))
     else:
-        shape = 3 * s * s - 2 * s ** 3
+        shape = 3 * s * s - 2 * s**3
         rate = 6 * sm * (1 - sm)
         accel = 6 - 12 * sm
         rate_n = 6 * s * (1 - s)
@@ -207,7 +218,7 @@ def _guess(cfg: _Config, data: _Data):
     qs = qs.at[-1].set(data.qf)
     ws = rate_n[:, None] * rotvec[None] / data.duration + (1 - s)[:, None] * data.w0[None] + s[:, None] * data.wf[None]
     wm = rate[:, None] * rotvec[None] / data.duration + (1 - sm)[:, None] * data.w0[None] + sm[:, None] * data.wf[None]
-    am = accel[:, None] * rotvec[None] / data.duration ** 2 + (data.wf - data.w0)[None] / data.duration
+    am = accel[:, None] * rotvec[None] / data.duration**2 + (data.wf - data.w0)[None] / data.duration
     u = jax.vmap(lambda w, a: data.inertia @ a + jnp.cross(w, data.inertia @ w))(wm, am)
     v = u / data.u_ref[None]
     # A fixed perturbation: on the eigenaxis profile itself the off-axis derivatives vanish,
@@ -237,12 +248,14 @@ def _solve(data: _Data, cfg: _Config, tol, max_iter: int):
         return y @ problem.stage(x, c.at[:3].set(v), sol.p, data, k)[0]
 
     # Per unit torque: d/du = d/dv / u_ref.
-    switching = jax.vmap(jax.grad(lam_dot_f))(sol.u[:, :3], sol.u, sol.x[:-1], sol.costates,
-                                              jnp.arange(N)) / data.u_ref[None]
+    switching = (
+        jax.vmap(jax.grad(lam_dot_f))(sol.u[:, :3], sol.u, sol.x[:-1], sol.costates, jnp.arange(N)) / data.u_ref[None]
+    )
     cost = T if cfg.min_time else sol.objective * _cost_scale(cfg, data)
     torque = jnp.concatenate([jnp.repeat(u, m, axis=0), u[-1:]])
-    return ConstrainedReorientation(T, ts, qs, ws, torque, u, sol.violation, cost, sol.costates, switching, sol.kkt,
-                                    sol.iterations, sol.converged)
+    return ConstrainedReorientation(
+        T, ts, qs, ws, torque, u, sol.violation, cost, sol.costates, switching, sol.kkt, sol.iterations, sol.converged
+    )
 
 
 def _cones(keep_out, dtype) -> np.ndarray:
@@ -251,24 +264,29 @@ def _cones(keep_out, dtype) -> np.ndarray:
         try:
             axis, direction, half = cone
         except (TypeError, ValueError):
-            raise ValueError(f"keep_out[{i}] must be (body_axis (3,), inertial_direction (3,), half_angle_rad), "
-                             f"got {cone!r}") from None
+            raise ValueError(
+                f"keep_out[{i}] must be (body_axis (3,), inertial_direction (3,), half_angle_rad), got {cone!r}"
+            ) from None
         axis, direction = np.asarray(axis, np.float64), np.asarray(direction, np.float64)
         half = float(half)
         if axis.shape != (3,) or direction.shape != (3,):
-            raise ValueError(f"keep_out[{i}]: body_axis and inertial_direction must be shaped (3,), "
-                             f"got {axis.shape} and {direction.shape}")
+            raise ValueError(
+                f"keep_out[{i}]: body_axis and inertial_direction must be shaped (3,), "
+                f"got {axis.shape} and {direction.shape}"
+            )
         if not (np.linalg.norm(axis) > 0 and np.linalg.norm(direction) > 0 and 0 < half < np.pi):
             raise ValueError(f"keep_out[{i}]: the axes must be non-zero and 0 < half_angle_rad < pi, got {cone!r}")
-        rows.append(np.concatenate([axis / np.linalg.norm(axis), direction / np.linalg.norm(direction),
-                                    [np.cos(half)]]))
+        rows.append(
+            np.concatenate([axis / np.linalg.norm(axis), direction / np.linalg.norm(direction), [np.cos(half)]])
+        )
     return np.asarray(rows, np.float64).reshape(-1, 7).astype(dtype)
 
 
 def _check_grid(intervals, substeps) -> None:
     if not isinstance(intervals, int) or intervals < 2 or not isinstance(substeps, int) or substeps < 1:
-        raise ValueError(f"need intervals >= 2 and substeps >= 1 (ints), got intervals={intervals!r}, "
-                         f"substeps={substeps!r}")
+        raise ValueError(
+            f"need intervals >= 2 and substeps >= 1 (ints), got intervals={intervals!r}, substeps={substeps!r}"
+        )
 
 
 def _check_duration(duration) -> float:
@@ -315,10 +333,21 @@ def _run(cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, bound, rate_bound
     inf = jnp.asarray(jnp.inf, dtype)
 
     def data_of(q0_, qf_, w0_, wf_, dur, ur, wr):
-        return _Data(inertia, q0_, w0_, qf_, wf_, dur, ur, wr, inf * jnp.ones(3, dtype) if bound is None else bound,
-                     inf if rate_bound is None else jnp.asarray(rate_bound, dtype), jnp.asarray(cones, dtype))
+        return _Data(
+            inertia,
+            q0_,
+            w0_,
+            qf_,
+            wf_,
+            dur,
+            ur,
+            wr,
+            inf * jnp.ones(3, dtype) if bound is None else bound,
+            inf if rate_bound is None else jnp.asarray(rate_bound, dtype),
+            jnp.asarray(cones, dtype),
+        )
 
-    flat = [jnp.reshape(a, (-1,) + a.shape[len(batch):]) for a in (q0, qf, w0, wf, duration, u_ref, w_ref)]
+    flat = [jnp.reshape(a, (-1,) + a.shape[len(batch) :]) for a in (q0, qf, w0, wf, duration, u_ref, w_ref)]
     data = jax.vmap(data_of)(*flat)
     out = jax.vmap(lambda d: _solve(d, cfg, tol, max_iter))(data)
     out = jax.tree.map(lambda a: jnp.reshape(a, batch + a.shape[1:]), out)
@@ -326,11 +355,13 @@ def _run(cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, bound, rate_bound
         bad = ~np.asarray(out.converged)
         if np.any(bad):
             raise RuntimeError(
-                f"{'minimum time' if cfg.min_time else 'minimum fuel' if cfg.fuel else 'minimum energy'} reorientation: the interior-point method did "
-                f"not converge for {int(bad.sum())} of {bad.size} problems (largest KKT residual "
+                f"{'minimum time' if cfg.min_time else 'minimum fuel' if cfg.fuel else 'minimum energy'} "
+                "reorientation: the interior-point method did not converge"
+                f" for {int(bad.sum())} of {bad.size} problems (largest KKT residual "
                 f"{float(np.max(np.asarray(out.kkt_residual)[bad])):.3g}, violation "
                 f"{float(np.max(np.asarray(out.violation)[bad])):.3g}). Try more intervals, max_iter, or a smaller "
-                "tol; check that the constraints admit a solution. Pass throw=False to get the last iterate.")
+                "tol; check that the constraints admit a solution. Pass throw=False to get the last iterate."
+            )
     return out
 
 
@@ -350,8 +381,10 @@ def _scales(inertia, q0, qf, w0, wf, duration_or_bound, min_time: bool):
         u_ref = jnp.broadcast_to(bound, q0.shape[:-1] + (3,))
     else:
         T = jnp.broadcast_to(jnp.asarray(duration_or_bound, q0.dtype), q0.shape[:-1])
-        peak = jnp.linalg.norm(jnp.einsum("ij,...j->...i", inertia, axis), axis=-1) * 6 * theta / T ** 2 \
+        peak = (
+            jnp.linalg.norm(jnp.einsum("ij,...j->...i", inertia, axis), axis=-1) * 6 * theta / T**2
             + jnp.max(jnp.abs(inertia)) * dw / T
+        )
         u_ref = jnp.broadcast_to(jnp.where(peak > 0, peak, 1.0)[..., None], q0.shape[:-1] + (3,))
     rate = jnp.maximum(jnp.maximum(2 * theta / T, jnp.linalg.norm(w0, axis=-1)), jnp.linalg.norm(wf, axis=-1))
     return T, u_ref, jnp.where(rate > 0, rate, 1.0)
@@ -388,8 +421,9 @@ def minimum_energy_reorientation(
     (the scaled KKT error) within ``max_iter`` iterations, unless ``throw=False``. Use float64."""
     _check_grid(intervals, substeps)
     duration = _check_duration(duration)
-    inertia, q0, qf, w0, wf, bound, rate_bound, cones = _prepare(inertia, q0, qf, omega0, omegaf, torque_bound,
-                                                                 rate_bound, keep_out)
+    inertia, q0, qf, w0, wf, bound, rate_bound, cones = _prepare(
+        inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out
+    )
     T, u_ref, w_ref = _scales(inertia, q0, qf, w0, wf, duration, min_time=False)
     if bound is not None:
         u_ref = jnp.broadcast_to(bound, u_ref.shape)
@@ -426,8 +460,9 @@ def minimum_fuel_reorientation(
     duration = _check_duration(duration)
     if torque_bound is None:
         raise ValueError("argument 'torque_bound' is required for minimum fuel (the l1 optimum is impulsive)")
-    inertia, q0, qf, w0, wf, bound, rate_bound, cones = _prepare(inertia, q0, qf, omega0, omegaf, torque_bound,
-                                                                 rate_bound, keep_out)
+    inertia, q0, qf, w0, wf, bound, rate_bound, cones = _prepare(
+        inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out
+    )
     T, u_ref, w_ref = _scales(inertia, q0, qf, w0, wf, duration, min_time=False)
     u_ref = jnp.broadcast_to(jnp.asarray(bound), u_ref.shape)  # bound is torque_bound's array here
     cfg = _Config(intervals, substeps, False, True, rate_bound is not None, len(cones), fuel=True)
@@ -457,8 +492,9 @@ def constrained_minimum_time(
     :func:`jaxquat.minimum_time_reorientation` calls this when given ``rate_bound`` or
     ``keep_out`` (or ``method="interior_point"``)."""
     _check_grid(intervals, substeps)
-    inertia, q0, qf, w0, wf, bound, rate_bound, cones = _prepare(inertia, q0, qf, omega0, omegaf, torque_bound,
-                                                                 rate_bound, keep_out)
+    inertia, q0, qf, w0, wf, bound, rate_bound, cones = _prepare(
+        inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out
+    )
     T, u_ref, w_ref = _scales(inertia, q0, qf, w0, wf, bound, min_time=True)
     cfg = _Config(intervals, substeps, True, True, rate_bound is not None, len(cones))
     return _run(cfg, inertia, q0, qf, w0, wf, T, u_ref, w_ref, bound, rate_bound, cones, tol, max_iter, throw)

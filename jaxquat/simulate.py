@@ -133,8 +133,9 @@ def simulate(
         return _exact_simulate(q0, omega0, inertia if shared_inertia is None else shared_inertia, ts, principal)
     substeps = None if (adjoint is not None or progress) else _scan_substeps(solver, ts_host, dt0, max_steps)
     adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
-    config = _Config(solver, torque, torque_frame, principal, substeps, adaptive, exact, rtol, atol, max_steps, adjoint,
-                     progress)
+    config = _Config(
+        solver, torque, torque_frame, principal, substeps, adaptive, exact, rtol, atol, max_steps, adjoint, progress
+    )
     try:
         return _solve(config, q0, omega0, inertia, shared_inertia, ts, args, dt0)
     except TypeError as err:  # jvp of the compiled solve meets diffrax's custom_vjp adjoint
@@ -169,7 +170,13 @@ def _solve(cfg: _Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> 
     used to dispatch (and compile) every array operation around ``diffeqsolve`` or the scan on
     its own (the suite's ``test_integrators.py``: 1092 compilations of single operations, 31 s;
     repeated eager calls 0.1-0.8 s each, now microseconds after the first)."""
-    solver, torque, torque_frame, principal, substeps = cfg.solver, cfg.torque, cfg.torque_frame, cfg.principal, cfg.substeps
+    solver, torque, torque_frame, principal, substeps = (
+        cfg.solver,
+        cfg.torque,
+        cfg.torque_frame,
+        cfg.principal,
+        cfg.substeps,
+    )
     adaptive = cfg.adaptive
     if cfg.exact:
         controller = diffrax.StepTo(ts)
@@ -189,8 +196,13 @@ def _solve(cfg: _Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> 
         if isinstance(solver, AbstractSplitting):  # the splittings read the RigidBody itself
             term = diffrax.ODETerm(RigidBody(inertia_1, torque_fn, torque_frame))
         else:  # on the scan path in the Lie-algebra form (the body rate on q: no conversion)
-            field = _Field(inertia_1, torque if per_body_field else torque_fn, torque_frame, per_body_field,
-                           rates=substeps is not None)
+            field = _Field(
+                inertia_1,
+                torque if per_body_field else torque_fn,
+                torque_frame,
+                per_body_field,
+                rates=substeps is not None,
+            )
             term = (diffrax.ODETerm if substeps is None else BodyRateTerm)(field)
         if substeps is not None:  # the fixed-step scan driver: the time axis first, as diffrax's
             qs, ws = solve_fixed_steps(solver, term, ts, (q, w), args, substeps=substeps)
@@ -203,8 +215,18 @@ def _solve(cfg: _Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> 
 
     def _diffeqsolve(term, q, w):
         sol = diffrax.diffeqsolve(
-            term, solver, ts[0], ts[-1], dt0, (q, w), args=args, saveat=diffrax.SaveAt(ts=ts),
-            stepsize_controller=controller, adjoint=cfg.adjoint, max_steps=cfg.max_steps, progress_meter=meter,
+            term,
+            solver,
+            ts[0],
+            ts[-1],
+            dt0,
+            (q, w),
+            args=args,
+            saveat=diffrax.SaveAt(ts=ts),
+            stepsize_controller=controller,
+            adjoint=cfg.adjoint,
+            max_steps=cfg.max_steps,
+            progress_meter=meter,
         )
         qs, ws = sol.ys  # type: ignore[misc]  # diffrax types ys as Optional; SaveAt(ts=...) fills it
         return qs, ws, sol
@@ -212,7 +234,7 @@ def _solve(cfg: _Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> 
     if not batch:
         return Simulation(*solve(q0, omega0, inertia, torque))
     n = len(ts)
-    flat = [x.reshape((-1,) + x.shape[len(batch):]) for x in (q0, omega0, inertia)]
+    flat = [x.reshape((-1,) + x.shape[len(batch) :]) for x in (q0, omega0, inertia)]
     if adaptive:  # each body its own step sizes
         qs, ws, sol = jax.vmap(lambda q, w, i: solve(q, w, i, torque))(*flat)
     else:  # fixed steps: one solve of the stacked batch (diffrax's per-step work is shared)
@@ -263,8 +285,10 @@ def _exact_simulate(q0, omega0, inertia, ts, principal: bool) -> Simulation:
     else:
         moments = jnp.diagonal(inertia, axis1=-2, axis2=-1)
     batch = q0.shape[:-1] + ts.shape
-    qs, ws = _propagate(*(jnp.broadcast_to(x[..., None, :], batch + (x.shape[-1],)) for x in (q0, omega0, moments)),
-                        jnp.broadcast_to(ts - ts[0], batch))
+    qs, ws = _propagate(
+        *(jnp.broadcast_to(x[..., None, :], batch + (x.shape[-1],)) for x in (q0, omega0, moments)),
+        jnp.broadcast_to(ts - ts[0], batch),
+    )
     if principal:  # the time axis is last among the batch axes here
         qs, ws = _from_principal(qs, ws, q_axes[..., None, :], r[..., None, :, :])
     return Simulation(qs, ws, None)

@@ -19,9 +19,7 @@ __all__ = ["hat", "vee"]
 def _hat(v: Array) -> Array:
     x, y, z = v[..., 0], v[..., 1], v[..., 2]
     o = jnp.zeros_like(x)
-    return jnp.stack(
-        [jnp.stack([o, -z, y], -1), jnp.stack([z, o, -x], -1), jnp.stack([-y, x, o], -1)], axis=-2
-    )
+    return jnp.stack([jnp.stack([o, -z, y], -1), jnp.stack([z, o, -x], -1), jnp.stack([-y, x, o], -1)], axis=-2)
 
 
 def hat(v: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:

@@ -130,7 +130,8 @@ class RotationSpline:
             raise ValueError(f"argument 'quats' must be shaped (n, 4) with n >= 2, got shape {tuple(quats.shape)}")
         if times.shape != quats.shape[:1]:
             raise ValueError(
-                f"argument 'times' must be shaped (n,) with n = {quats.shape[0]} (one per key), got shape {tuple(times.shape)}"
+                f"argument 'times' must be shaped (n,) with n = {quats.shape[0]} (one per key), got shape "
+                f"{tuple(times.shape)}"
             )
         times, quats = _checks.broadcast_batch([times, quats], ["times", "quats"], [1, 2])
         if not _checks.is_traced(times) and not np.all(np.diff(np.asarray(times, dtype=np.float64)) > 0):

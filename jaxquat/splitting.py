@@ -119,7 +119,9 @@ class AbstractSplitting(diffrax.AbstractSolver):
             inner = inner.term  # diffrax wraps the user's term (WrapTerm)
         rb = getattr(inner, "vector_field", None)
         if not isinstance(rb, RigidBody):
-            raise TypeError(f"{type(self).__name__} needs diffrax.ODETerm(jaxquat.RigidBody(...)), got {type(rb).__name__}")
+            raise TypeError(
+                f"{type(self).__name__} needs diffrax.ODETerm(jaxquat.RigidBody(...)), got {type(rb).__name__}"
+            )
         return rb, direction
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
@@ -143,9 +145,12 @@ class AbstractSplitting(diffrax.AbstractSolver):
             energy = bool(self.exact_energy or jnp.finfo(w1.dtype).eps > 1e-10)
             w1 = _onto_invariants(jnp.diagonal(rb.inertia, axis1=-2, axis2=-1), w1, solver_state, energy)
         # A run-time check (under jit the inertia's values are unknown at trace time).
-        off_diagonal = jnp.any(rb.inertia * jnp.broadcast_to(1 - jnp.eye(3, dtype=rb.inertia.dtype), rb.inertia.shape) != 0)
+        off_diagonal = jnp.any(
+            rb.inertia * jnp.broadcast_to(1 - jnp.eye(3, dtype=rb.inertia.dtype), rb.inertia.shape) != 0
+        )
         q1 = eqx.error_if(
-            q1, off_diagonal,
+            q1,
+            off_diagonal,
             f"{type(self).__name__} needs the inertia in principal axes (a diagonal tensor): use "
             "jaxquat.principal_axes, or jaxquat.simulate, which rotates to principal axes itself",
         )

@@ -112,8 +112,9 @@ def _lbfgs(f, x0, iters: int, memory_size: int = 10, linesearch_steps: int = 20,
     ``lax.scan``; returns the final parameters and ``f`` at every iteration. The defaults are
     ``optax.lbfgs()``'s (the examples use them, through ``examples/_lbfgs.py``); the
     time-optimal solver keeps the previous step length as the line search's first guess."""
-    linesearch = optax.scale_by_zoom_linesearch(max_linesearch_steps=linesearch_steps,
-                                                initial_guess_strategy=initial_guess)
+    linesearch = optax.scale_by_zoom_linesearch(
+        max_linesearch_steps=linesearch_steps, initial_guess_strategy=initial_guess
+    )
     opt = optax.lbfgs(memory_size=memory_size, linesearch=linesearch)
     value_and_grad = optax.value_and_grad_from_state(f)
 
@@ -221,8 +222,9 @@ def _switching(x, lam, pr: _Problem, substeps: int):
     """The discrete switching function ``sigma = d(lam . c)/du`` ``(intervals, 3)`` at fixed time:
     stationarity in ``p`` is ``sigma b cos(p) = 0``, so a control with ``sigma != 0`` is on a bound."""
     time, u = _unpack(x, pr)
-    return jax.grad(lambda uu: lam @ _residual(*_rollout(pr.inertia, pr.q0, pr.w0, time, uu, substeps),
-                                               pr.qf, pr.wf))(u)
+    return jax.grad(lambda uu: lam @ _residual(*_rollout(pr.inertia, pr.q0, pr.w0, time, uu, substeps), pr.qf, pr.wf))(
+        u
+    )
 
 
 @functools.partial(jax.jit, static_argnames=("substeps", "iters"))
@@ -286,8 +288,13 @@ def _solve(x, lam, mu, pr: _Problem, substeps: int, inner: int):
 
         x1, _ = _lbfgs(lagrangian, x1, inner, _MEMORY, _LINESEARCH_STEPS, initial_guess="keep")
         x_pol = _polish(x1, pr, substeps)
-        return x1, _terminal_residual(x1, pr, substeps), x_pol, _terminal_residual(x_pol, pr, substeps), \
-            _unpack(x_pol, pr)[0]
+        return (
+            x1,
+            _terminal_residual(x1, pr, substeps),
+            x_pol,
+            _terminal_residual(x_pol, pr, substeps),
+            _unpack(x_pol, pr)[0],
+        )
 
     return jax.vmap(one)(x, lam, mu)
 
@@ -347,20 +354,34 @@ def minimum_time_reorientation(
     handled by direct multiple shooting with the interior-point method of
     :func:`jaxquat.constrained_minimum_time` (``intervals``, ``substeps`` and ``throw`` carry
     over; it converges to a KKT error of 1e-9 whatever ``tol``; ``starts``, ``seed``, ``init``,
-    ``outer``, ``inner``, ``mu``, ``refine`` and ``progress`` do not apply), which returns a :class:`jaxquat.ConstrainedReorientation` with
-    the same ``time``, ``ts``, ``q``, ``omega``, ``torque``, ``controls`` and ``violation``
-    fields. ``method``: ``"auto"`` (that solver when a rate bound or a cone is given, this
-    module's otherwise), ``"interior_point"`` or ``"single_shooting"``.
+    ``outer``, ``inner``, ``mu``, ``refine`` and ``progress`` do not apply), which returns a
+    :class:`jaxquat.ConstrainedReorientation` with the same ``time``, ``ts``, ``q``, ``omega``,
+    ``torque``, ``controls`` and ``violation`` fields. ``method``: ``"auto"`` (that solver when a
+    rate bound or a cone is given, this module's otherwise), ``"interior_point"`` or
+    ``"single_shooting"``.
     """
     if method not in ("auto", "interior_point", "single_shooting"):
         raise ValueError(f"argument 'method' must be 'auto', 'interior_point' or 'single_shooting', got {method!r}")
     constrained = rate_bound is not None or len(keep_out) > 0
     if method == "single_shooting" and constrained:
-        raise ValueError("method='single_shooting' handles torque bounds only; rate_bound and keep_out need "
-                         "method='interior_point' (or 'auto')")
+        raise ValueError(
+            "method='single_shooting' handles torque bounds only; rate_bound and keep_out need "
+            "method='interior_point' (or 'auto')"
+        )
     if method == "interior_point" or (method == "auto" and constrained):
-        return constrained_minimum_time(inertia, torque_bound, q0, qf, omega0, omegaf, rate_bound=rate_bound,
-                                        keep_out=keep_out, intervals=intervals, substeps=substeps, throw=throw)
+        return constrained_minimum_time(
+            inertia,
+            torque_bound,
+            q0,
+            qf,
+            omega0,
+            omegaf,
+            rate_bound=rate_bound,
+            keep_out=keep_out,
+            intervals=intervals,
+            substeps=substeps,
+            throw=throw,
+        )
     inertia = _validated(inertia)
     if inertia.shape != (3, 3):
         raise ValueError(f"argument 'inertia' must be shaped (3, 3), got shape {tuple(inertia.shape)}")
@@ -422,19 +443,30 @@ def minimum_time_reorientation(
         better = ((viol <= tol) & (times < best_time)) | ((best_time == np.inf) & (viol < least))
         least = np.minimum(least, viol)
         for key in best_x:
-            best_x[key] = np.where(better.reshape((-1,) + (1,) * (best_x[key].ndim - 1)), np.asarray(x_pol[key]),
-                                   best_x[key])
+            best_x[key] = np.where(
+                better.reshape((-1,) + (1,) * (best_x[key].ndim - 1)), np.asarray(x_pol[key]), best_x[key]
+            )
         best_time = np.where(better & (viol <= tol), times, best_time)
-        k = int(np.argmin(np.where(best_time < np.inf, best_time, np.inf))) if np.any(best_time < np.inf) else int(np.argmin(viol))
+        k = (
+            int(np.argmin(np.where(best_time < np.inf, best_time, np.inf)))
+            if np.any(best_time < np.inf)
+            else int(np.argmin(viol))
+        )
         history.append((float(times[k]), float(viol[k])))
         # Stalled far from feasibility (the least violation over the starts fell by less than
         # 10 % in two outer iterations and is above 100 tol): stop and let the Newton phase try.
-        if len(history) >= 3 and not np.any(best_time < np.inf) and least.min() > 100 * tol \
-                and least.min() > 0.9 * least_seen[-2]:
+        if (
+            len(history) >= 3
+            and not np.any(best_time < np.inf)
+            and least.min() > 100 * tol
+            and least.min() > 0.9 * least_seen[-2]
+        ):
             break
         least_seen.append(float(least.min()))
         if bar is not None:
-            bar.set_postfix(time=f"{times[k]:.6f}", violation=f"{viol[k]:.1e}", feasible=int(np.sum(best_time < np.inf)))
+            bar.set_postfix(
+                time=f"{times[k]:.6f}", violation=f"{viol[k]:.1e}", feasible=int(np.sum(best_time < np.inf))
+            )
             bar.update()
     if bar is not None:
         bar.close()
@@ -442,7 +474,8 @@ def minimum_time_reorientation(
     # made between converged optima, not between wherever each start's budget ran out.
     x_ref, mults, kkt_res, t_ref_all, viol_ref, sigmas = (
         jax.tree_util.tree_map(np.asarray, out)
-        for out in _refine({key: jnp.asarray(v) for key, v in best_x.items()}, problem, substeps, refine))
+        for out in _refine({key: jnp.asarray(v) for key, v in best_x.items()}, problem, substeps, refine)
+    )
     converged = kkt_res <= _CONVERGED
     feasible = (viol_ref <= tol) & (converged if np.any(converged & (viol_ref <= tol)) else True)
     best_time = np.where(feasible, t_ref_all, np.inf)
@@ -464,5 +497,17 @@ def minimum_time_reorientation(
     torque = jnp.repeat(u, substeps, axis=0)
     torque = jnp.concatenate([torque, torque[-1:]])
     violation = jnp.linalg.norm(_residual(qT, wT, qf, wf))
-    return Reorientation(time, ts, qs, ws, torque, u, violation, jnp.asarray(best_time), jnp.asarray(history),
-                         multipliers, switching, jnp.asarray(kkt_res[k]))
+    return Reorientation(
+        time,
+        ts,
+        qs,
+        ws,
+        torque,
+        u,
+        violation,
+        jnp.asarray(best_time),
+        jnp.asarray(history),
+        multipliers,
+        switching,
+        jnp.asarray(kkt_res[k]),
+    )

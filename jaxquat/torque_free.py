@@ -57,7 +57,7 @@ __all__ = ["euler_poinsot", "principal_axes", "polhode_period"]
 def _validated_moments(moments, name: str = "moments") -> Array:
     moments = _checks.vec3(moments, name)
     if not _checks.is_traced(moments):
-        _validated(jnp.vectorize(jnp.diag, signature='(3)->(3,3)')(moments), name)
+        _validated(jnp.vectorize(jnp.diag, signature="(3)->(3,3)")(moments), name)
     return moments
 
 
@@ -277,7 +277,9 @@ def euler_poinsot(
     omega0 = _checks.vec3(omega0, "omega0")
     moments = _validated_moments(moments)
     t = _checks.scalar_like(t, "t")
-    q0, omega0, moments, t = _checks.broadcast_batch([q0, omega0, moments, t], ["q0", "omega0", "moments", "t"], [1, 1, 1, 0])
+    q0, omega0, moments, t = _checks.broadcast_batch(
+        [q0, omega0, moments, t], ["q0", "omega0", "moments", "t"], [1, 1, 1, 0]
+    )
     dtype = q0.dtype
     work = _checks.working_dtype(dtype)
     q, w = _propagate(*(x.astype(work) for x in (q0, omega0, moments, t)))

@@ -62,7 +62,9 @@ def _points(q, bias, p, kappa):
     n = p.shape[-1]
     chol = jnp.linalg.cholesky((n + kappa) * _symmetric(p))
     offsets = jnp.concatenate([jnp.zeros((1, n), p.dtype), chol.T, -chol.T], axis=0)
-    weights = jnp.concatenate([jnp.full((1,), kappa / (n + kappa)), jnp.full((2 * n,), 0.5 / (n + kappa))]).astype(p.dtype)
+    weights = jnp.concatenate([jnp.full((1,), kappa / (n + kappa)), jnp.full((2 * n,), 0.5 / (n + kappa))]).astype(
+        p.dtype
+    )
     qs = _multiply(jnp.broadcast_to(q, (2 * n + 1, 4)), _from_rotvec(offsets[:, :3]))
     return qs, bias[None, :] + offsets[:, 3:], offsets, weights
 
@@ -71,7 +73,9 @@ def _predict(q, bias, p, gyro, dt, gyro_noise, bias_noise, kappa):
     qs, biases, offsets, w = _points(q, bias, p, kappa)
     qs = _multiply(qs, _from_rotvec((gyro[None, :] - biases) * dt))
     centre = qs[0]
-    dev = jnp.concatenate([_to_rotvec(_multiply(jnp.broadcast_to(_conjugate(centre), qs.shape), qs)), offsets[:, 3:]], -1)
+    dev = jnp.concatenate(
+        [_to_rotvec(_multiply(jnp.broadcast_to(_conjugate(centre), qs.shape), qs)), offsets[:, 3:]], -1
+    )
     mean = w @ dev
     spread = dev - mean[None, :]
     p = _symmetric((spread * w[:, None]).T @ spread + _process_noise(dt, gyro_noise, bias_noise, p.dtype))

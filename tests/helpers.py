@@ -143,7 +143,9 @@ def random_inertias(seed: int, n: int = BATCH, dtype=None) -> np.ndarray:
     r -= r.mean(axis=1, keepdims=True)
     m = rng.uniform(0.5, 2.0, (n, 6))
     eye = np.eye(3)
-    inertia = np.einsum("nk,nkij->nij", m, np.einsum("nk,ij->nkij", (r * r).sum(-1), eye) - np.einsum("nki,nkj->nkij", r, r))
+    inertia = np.einsum(
+        "nk,nkij->nij", m, np.einsum("nk,ij->nkij", (r * r).sum(-1), eye) - np.einsum("nki,nkj->nkij", r, r)
+    )
     inertia /= (np.trace(inertia, axis1=-2, axis2=-1) / 3.0)[:, None, None]  # O(1) entries
     return inertia.astype(dtype)
 

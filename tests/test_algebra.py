@@ -71,7 +71,7 @@ def test_product_matrices(seed):
     assert_close(right / scale, pq / scale)
     # Schwab: Q and P-bar commute; the matrices of q* are the transposes.
     lq, rp = np.asarray(jq.left_matrix(q)), np.asarray(jq.right_matrix(p))
-    s = (np.abs(lq).max() * np.abs(rp).max())
+    s = np.abs(lq).max() * np.abs(rp).max()
     assert_close((lq @ rp - rp @ lq) / s, np.zeros_like(lq), what="Q Pbar = Pbar Q")
     assert_close(np.asarray(jq.left_matrix(jq.conjugate(q))), np.swapaxes(lq, -1, -2))
 
@@ -107,7 +107,9 @@ def test_exp_log_match_numpy_quaternion(seed):
 def test_exp_log_inverse(seed):
     q = _general(seed)
     back = exp(log(q))
-    assert_close(back / jnp.linalg.norm(q, axis=-1, keepdims=True), q / jnp.linalg.norm(q, axis=-1, keepdims=True), tol=10 * TOL)
+    assert_close(
+        back / jnp.linalg.norm(q, axis=-1, keepdims=True), q / jnp.linalg.norm(q, axis=-1, keepdims=True), tol=10 * TOL
+    )
 
 
 def test_log_negative_real_axis_is_a_logarithm():

@@ -155,7 +155,10 @@ REGISTRY = {
     "inverse_dynamics": (jq.inverse_dynamics, ["q", "w", "v", "J"], 1),
     "euler_parameter_acceleration_body": (jq.euler_parameter_acceleration, ["q", "qd", "J", "v"], 0),
     "euler_parameter_acceleration_space": (
-        lambda q, d, i, m: jq.euler_parameter_acceleration(q, d, i, m, "space"), ["q", "qd", "J", "v"], 1),
+        lambda q, d, i, m: jq.euler_parameter_acceleration(q, d, i, m, "space"),
+        ["q", "qd", "J", "v"],
+        1,
+    ),
     "euler_parameter_acceleration_inertia": (jq.euler_parameter_acceleration, ["q", "qd", "J", "v"], 2),
     "euler_parameter_torque": (jq.euler_parameter_torque, ["q", "qd", "qdd", "J"], 0),
     "euler_parameter_mass_matrix": (jq.euler_parameter_mass_matrix, ["q", "J"], 0),
@@ -192,8 +195,25 @@ FD_EXCLUDED_ROWS = {
 }
 
 # Functions with a genuine kink at some singular point; there we only require finiteness.
-NONSMOOTH_AT_SINGULAR = {"minus", "minus_space", "squad_segment", "squad_control_points", "norm", "canonicalize", "to_rotvec", "to_axis_angle", "to_mrp", "to_euler_xyz",
-                         "to_euler_ZXZ", "angle", "angle_between", "log", "power", "slerp", "from_matrix"}
+NONSMOOTH_AT_SINGULAR = {
+    "minus",
+    "minus_space",
+    "squad_segment",
+    "squad_control_points",
+    "norm",
+    "canonicalize",
+    "to_rotvec",
+    "to_axis_angle",
+    "to_mrp",
+    "to_euler_xyz",
+    "to_euler_ZXZ",
+    "angle",
+    "angle_between",
+    "log",
+    "power",
+    "slerp",
+    "from_matrix",
+}
 
 
 def _make(name, q):
@@ -275,13 +295,20 @@ def _jacobians(name):
 
         n = len(_leaves(fn(*args)))
         x = args[diff]
-        return _leaves(fn(*args)), [jax.jacrev(leaf(i))(x) for i in range(n)], [jax.jacfwd(leaf(i))(x) for i in range(n)]
+        return (
+            _leaves(fn(*args)),
+            [jax.jacrev(leaf(i))(x) for i in range(n)],
+            [jax.jacfwd(leaf(i))(x) for i in range(n)],
+        )
 
     return jax.jit(jacobians)
 
 
-@pytest.mark.skipif(not X64, reason="central differences need float64; float32 gradients are checked "
-                    "finite and forward == reverse in test_gradients_finite_at_singular_points")
+@pytest.mark.skipif(
+    not X64,
+    reason="central differences need float64; float32 gradients are checked "
+    "finite and forward == reverse in test_gradients_finite_at_singular_points",
+)
 @pytest.mark.parametrize("name", NAMES)
 def test_gradients_match_finite_differences(name):
     """Reverse mode, forward mode and central differences agree at smooth points: the gradient
@@ -301,7 +328,9 @@ def test_gradients_match_finite_differences(name):
     loss = jax.jit(_loss(fn, list(args), diff, weights))
     fd = central_difference_jacobian(loss, np.asarray(x), h=1e-6)
     keep = np.setdiff1d(np.arange(len(x)), FD_EXCLUDED_ROWS.get(name, []))
-    assert_close(np.asarray(g_rev)[keep] / scale, fd[keep] / scale, tol=1e-6, what=f"{name} grad vs central differences")
+    assert_close(
+        np.asarray(g_rev)[keep] / scale, fd[keep] / scale, tol=1e-6, what=f"{name} grad vs central differences"
+    )
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -362,7 +391,9 @@ BAD_SHAPES = {
     "matrix_rate": lambda: jq.matrix_rate(jnp.zeros(4), jnp.zeros(2)),
     "matrix_acceleration": lambda: jq.matrix_acceleration(jnp.zeros(4), jnp.zeros(3), jnp.zeros(4)),
     "point_velocity": lambda: jq.point_velocity(jnp.zeros(4), jnp.zeros(3), jnp.zeros(4)),
-    "point_acceleration": lambda: jq.point_acceleration(jnp.zeros(4), jnp.zeros(3), jnp.zeros(3), jnp.zeros(3), r_ddot=jnp.zeros(2)),
+    "point_acceleration": lambda: jq.point_acceleration(
+        jnp.zeros(4), jnp.zeros(3), jnp.zeros(3), jnp.zeros(3), r_ddot=jnp.zeros(2)
+    ),
     "inertia_from_points": lambda: jq.inertia_from_points(jnp.zeros(3), jnp.zeros(1)),
     "rotate_inertia": lambda: jq.rotate_inertia(jnp.zeros(4), jnp.zeros(3)),
     "inertia_rate": lambda: jq.inertia_rate(jnp.eye(3), jnp.zeros(4)),
@@ -371,11 +402,17 @@ BAD_SHAPES = {
     "kinetic_energy": lambda: jq.kinetic_energy(jnp.zeros(4), jnp.zeros(4), jnp.eye(3)),
     "angular_acceleration": lambda: jq.angular_acceleration(jnp.zeros(4), jnp.zeros(3), jnp.eye(3), jnp.zeros(4)),
     "inverse_dynamics": lambda: jq.inverse_dynamics(jnp.zeros(4), jnp.zeros(3), jnp.zeros(2), jnp.eye(3)),
-    "euler_parameter_acceleration": lambda: jq.euler_parameter_acceleration(jnp.zeros(4), jnp.zeros(3), jnp.eye(3), jnp.zeros(3)),
-    "euler_parameter_acceleration_inertia": lambda: jq.euler_parameter_acceleration(jnp.zeros(4), jnp.zeros(4), jnp.ones(3), jnp.zeros(3)),
+    "euler_parameter_acceleration": lambda: jq.euler_parameter_acceleration(
+        jnp.zeros(4), jnp.zeros(3), jnp.eye(3), jnp.zeros(3)
+    ),
+    "euler_parameter_acceleration_inertia": lambda: jq.euler_parameter_acceleration(
+        jnp.zeros(4), jnp.zeros(4), jnp.ones(3), jnp.zeros(3)
+    ),
     "euler_parameter_torque": lambda: jq.euler_parameter_torque(jnp.zeros(4), jnp.zeros(4), jnp.zeros(3), jnp.eye(3)),
     "euler_parameter_mass_matrix": lambda: jq.euler_parameter_mass_matrix(jnp.zeros(3), jnp.eye(3)),
-    "euler_parameter_augmented_system": lambda: jq.euler_parameter_augmented_system(jnp.zeros(4), jnp.zeros(4), jnp.eye(3), jnp.zeros(4)),
+    "euler_parameter_augmented_system": lambda: jq.euler_parameter_augmented_system(
+        jnp.zeros(4), jnp.zeros(4), jnp.eye(3), jnp.zeros(4)
+    ),
     "norm_constraint_multiplier": lambda: jq.norm_constraint_multiplier(jnp.zeros(4), jnp.zeros(3), jnp.eye(3)),
     "generalized_force": lambda: jq.generalized_force(jnp.zeros(4), jnp.zeros(4)),
     "torque_from_generalized_force": lambda: jq.torque_from_generalized_force(jnp.zeros(4), jnp.zeros(3)),
@@ -405,9 +442,13 @@ def test_bad_shape_raises_clear_error(case):
 
 
 def test_shape_error_names_the_argument_and_expected_shape():
-    with pytest.raises(ValueError, match=r"argument 'v' must be a 3-vector array shaped \(\.\.\., 3\), got shape \(7, 4\)"):
+    with pytest.raises(
+        ValueError, match=r"argument 'v' must be a 3-vector array shaped \(\.\.\., 3\), got shape \(7, 4\)"
+    ):
         jq.rotate(jnp.zeros((7, 4)), jnp.zeros((7, 4)))
-    with pytest.raises(ValueError, match=r"argument 'm' must be a matrix array shaped \(\.\.\., 3, 3\), got shape \(3, 4\)"):
+    with pytest.raises(
+        ValueError, match=r"argument 'm' must be a matrix array shaped \(\.\.\., 3, 3\), got shape \(3, 4\)"
+    ):
         jq.from_matrix(jnp.zeros((3, 4)))
 
 
@@ -459,7 +500,9 @@ def test_scale_invariant_functions_at_extreme_scales(exponent):
     assert_close(angle, half_pi, tol=tol, what="to_axis_angle")
     assert_close(jq.to_mrp(q), [np.tan(np.pi / 8), 0.0, 0.0], tol=tol, what="to_mrp")
     assert_close(jq.to_euler(q, "xyz"), [half_pi, 0.0, 0.0], tol=tol, what="to_euler")
-    assert_close(jq.minus(q, jnp.asarray([1.0, 0.0, 0.0, 0.0], DTYPE) * q[0]), [half_pi, 0.0, 0.0], tol=tol, what="minus")
+    assert_close(
+        jq.minus(q, jnp.asarray([1.0, 0.0, 0.0, 0.0], DTYPE) * q[0]), [half_pi, 0.0, 0.0], tol=tol, what="minus"
+    )
 
 
 def test_every_public_name_is_in_the_contract():
@@ -468,30 +511,81 @@ def test_every_public_name_is_in_the_contract():
     # tests/test_torques.py (they return functions).
     # squad and RotationSpline take a whole key sequence (not a batch of rows): their
     # jit/vmap/gradient tests are in tests/test_spline.py; the optimiser helpers in test_lie.py.
-    elsewhere = {"to_euler", "from_euler", "identity", "random", "is_valid_inertia", "check_inertia",
-                 "as_body_torque", "circular_orbit_gravity_gradient", "squad", "RotationSpline",
-                 "tangent_optimizer", "apply_tangent_updates", "tangent_gradients",
-                 # the ODE layer (vector fields, diffrax solvers, simulate): tests/test_integrators.py
-                 "RigidBody", "EulerParameterBody", "invariants", "LieEuler", "RKMK4", "RKMK45",
-                 "RigidBodySplit", "RigidBodySplit4", "SlerpInterpolation", "Simulation", "simulate",
-                 "AbstractSplitting",
-                 # the Lie solvers on any model and the fixed-step driver: tests/test_lie_solvers.py
-                 "AbstractLieSolver", "AbstractRKMK", "RKMKTsit5", "RKMK8", "BodyRateTerm", "solve_fixed_steps",
-                 "LocalPolynomialInterpolation", "AbstractLeafInterpolation",
-                 # vehicle models with quaternion leaves: tests/test_models.py
-                 "Quadrotor", "ReactionWheelSpacecraft",
-                 # elliptic functions and the exact torque-free propagator: tests/test_elliptic.py,
-                 # tests/test_torque_free.py (scalar/principal-moment arguments, own contract tests)
-                 "ellipj", "ellipk", "elliprf", "elliprj", "euler_poinsot", "principal_axes", "polhode_period",
-                 "EulerPoinsotSplit", "EulerPoinsotSplit4",
-                 # an eager optimiser (not a traced function): tests/test_time_optimal.py
-                 "minimum_time_reorientation", "Reorientation",
-                 # the multiple-shooting interior-point layer (NLP solvers): tests/test_optimal_control.py
-                 "solve_shooting", "ShootingProblem", "ShootingSolution", "ConstrainedReorientation",
-                 "constrained_minimum_time", "minimum_energy_reorientation", "minimum_fuel_reorientation",
-                 # the MEKF (a filter over a time axis, with its own jit/vmap/grad tests): tests/test_mekf.py
-                 "FilterState", "FilterUpdate", "FilterResult", "mekf_init", "mekf_predict", "mekf_update",
-                 "mekf_update_quaternion", "mekf", "ukf_predict", "ukf_update", "ukf_update_quaternion", "ukf"}
+    elsewhere = {
+        "to_euler",
+        "from_euler",
+        "identity",
+        "random",
+        "is_valid_inertia",
+        "check_inertia",
+        "as_body_torque",
+        "circular_orbit_gravity_gradient",
+        "squad",
+        "RotationSpline",
+        "tangent_optimizer",
+        "apply_tangent_updates",
+        "tangent_gradients",
+        # the ODE layer (vector fields, diffrax solvers, simulate): tests/test_integrators.py
+        "RigidBody",
+        "EulerParameterBody",
+        "invariants",
+        "LieEuler",
+        "RKMK4",
+        "RKMK45",
+        "RigidBodySplit",
+        "RigidBodySplit4",
+        "SlerpInterpolation",
+        "Simulation",
+        "simulate",
+        "AbstractSplitting",
+        # the Lie solvers on any model and the fixed-step driver: tests/test_lie_solvers.py
+        "AbstractLieSolver",
+        "AbstractRKMK",
+        "RKMKTsit5",
+        "RKMK8",
+        "BodyRateTerm",
+        "solve_fixed_steps",
+        "LocalPolynomialInterpolation",
+        "AbstractLeafInterpolation",
+        # vehicle models with quaternion leaves: tests/test_models.py
+        "Quadrotor",
+        "ReactionWheelSpacecraft",
+        # elliptic functions and the exact torque-free propagator: tests/test_elliptic.py,
+        # tests/test_torque_free.py (scalar/principal-moment arguments, own contract tests)
+        "ellipj",
+        "ellipk",
+        "elliprf",
+        "elliprj",
+        "euler_poinsot",
+        "principal_axes",
+        "polhode_period",
+        "EulerPoinsotSplit",
+        "EulerPoinsotSplit4",
+        # an eager optimiser (not a traced function): tests/test_time_optimal.py
+        "minimum_time_reorientation",
+        "Reorientation",
+        # the multiple-shooting interior-point layer (NLP solvers): tests/test_optimal_control.py
+        "solve_shooting",
+        "ShootingProblem",
+        "ShootingSolution",
+        "ConstrainedReorientation",
+        "constrained_minimum_time",
+        "minimum_energy_reorientation",
+        "minimum_fuel_reorientation",
+        # the MEKF (a filter over a time axis, with its own jit/vmap/grad tests): tests/test_mekf.py
+        "FilterState",
+        "FilterUpdate",
+        "FilterResult",
+        "mekf_init",
+        "mekf_predict",
+        "mekf_update",
+        "mekf_update_quaternion",
+        "mekf",
+        "ukf_predict",
+        "ukf_update",
+        "ukf_update_quaternion",
+        "ukf",
+    }
     suffixes = ("_nearest", "_body", "_space", "_inertia", "_t")
     covered = set(REGISTRY) | {n[: -len(s)] for n in REGISTRY for s in suffixes if n.endswith(s)}
     assert set(jq.__all__) <= covered | elsewhere, set(jq.__all__) - covered - elsewhere

@@ -45,8 +45,9 @@ def test_quest_solves_wahba_as_scipy_does(seed):
 @given(seeds)
 def test_quest_is_exact_on_noise_free_data_including_180_degrees(seed):
     q, b, r, w = _problem(seed, noise=0.0)
-    assert_same_rotation(quest_jit(jnp.asarray(b, DTYPE), jnp.asarray(r, DTYPE), jnp.asarray(w, DTYPE)), q,
-                         tol=1e-12 if X64 else 2e-6)
+    assert_same_rotation(
+        quest_jit(jnp.asarray(b, DTYPE), jnp.asarray(r, DTYPE), jnp.asarray(w, DTYPE)), q, tol=1e-12 if X64 else 2e-6
+    )
 
 
 def test_quest_matches_the_eigh_solution_when_the_top_eigenvalues_are_close():
@@ -99,7 +100,9 @@ def test_triad_and_quest_jit_vmap_batching_and_gradients_at_180_degrees():
     # Rows 0..3 of random_quats hold singular attitudes (180 degrees among them): finite gradients.
     g = jax.grad(lambda r: jnp.sum(quest_jit(qb[0], r, qb[2]) ** 2 * jnp.arange(4.0, dtype=DTYPE)[None]))(qb[1])
     assert np.all(np.isfinite(np.asarray(g)))
-    g = jax.grad(lambda r1: jnp.sum(triad_jit(args[0], args[1], r1, args[3]) * jnp.arange(4.0, dtype=DTYPE)[None]))(args[2])
+    g = jax.grad(lambda r1: jnp.sum(triad_jit(args[0], args[1], r1, args[3]) * jnp.arange(4.0, dtype=DTYPE)[None]))(
+        args[2]
+    )
     assert np.all(np.isfinite(np.asarray(g)))
 
 
@@ -118,7 +121,9 @@ def test_attitude_covariance_against_a_monte_carlo_of_quest():
     noise -= np.einsum("dmi,mi->dm", noise, b)[..., None] * b
     measured = np.asarray(jq.plus(jnp.asarray([1.0, 0, 0, 0]), jnp.asarray(noise)), np.float64)
     bm = np.asarray(jq.rotate(jnp.asarray(measured), jnp.broadcast_to(jnp.asarray(b), (draws, 3, 3))))
-    est = quest_jit(jnp.asarray(bm, DTYPE), jnp.asarray(np.broadcast_to(r, bm.shape), DTYPE), jnp.asarray(1 / s**2, DTYPE))
+    est = quest_jit(
+        jnp.asarray(bm, DTYPE), jnp.asarray(np.broadcast_to(r, bm.shape), DTYPE), jnp.asarray(1 / s**2, DTYPE)
+    )
     err = np.asarray(jq.minus(jnp.asarray(q), est.astype(jnp.float64) if X64 else est), np.float64)
     sample = err.T @ err / draws
     p = np.asarray(jq.attitude_covariance(jnp.asarray(b, DTYPE), jnp.asarray(s, DTYPE)), np.float64)
@@ -136,7 +141,8 @@ def test_attitude_covariance_against_a_monte_carlo_of_quest():
 def test_align_vectors_sensitivity_matches_scipy(seed):
     _, b, r, w = _problem(seed, noise=0.05)
     q, sens = jax.jit(lambda a, b, w: jq.align_vectors(a, b, w, return_sensitivity=True))(
-        jnp.asarray(r, DTYPE), jnp.asarray(b, DTYPE), jnp.asarray(w, DTYPE))
+        jnp.asarray(r, DTYPE), jnp.asarray(b, DTYPE), jnp.asarray(w, DTYPE)
+    )
     for i in range(N):
         rot, _, ref = Rotation.align_vectors(r[i], b[i], w[i], return_sensitivity=True)
         assert_same_rotation(q[i], from_scipy(rot.as_quat()), tol=1e-10 if X64 else 2e-5)

@@ -63,7 +63,9 @@ def test_the_package_re_exports_every_module_name_by_name():
     assert len(exported) == len(set(exported))
     assert sorted(jq.__all__) == sorted(exported)
     for m in modules:
-        block = text[text.index(f"from .{m} import ("):]
+        block = text[text.index(f"from .{m} import (") :]
         block = block[: block.index(")")]
-        assert set(re.findall(r"(\w+) as (\w+)", block)) == {(n, n) for n in importlib.import_module(f"jaxquat.{m}").__all__}, m
+        assert set(re.findall(r"(\w+) as (\w+)", block)) == {
+            (n, n) for n in importlib.import_module(f"jaxquat.{m}").__all__
+        }, m
     assert all(hasattr(jq, name) for name in jq.__all__)

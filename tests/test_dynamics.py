@@ -13,7 +13,16 @@ import pytest
 from hypothesis import given
 
 import jaxquat as jq
-from helpers import DTYPE, X64, assert_close, attitude_curve, curve_coefficients, random_inertias, seeds, time_derivatives
+from helpers import (
+    DTYPE,
+    X64,
+    assert_close,
+    attitude_curve,
+    curve_coefficients,
+    random_inertias,
+    seeds,
+    time_derivatives,
+)
 
 FRAMES = ["body", "space"]
 TOL_D = 1e-10 if X64 else 2e-4  # relative to the largest entry of the compared quantity
@@ -41,8 +50,14 @@ def _curve(c, inertia):
         return jq.rotate(qs, mv(inertia, jq.omega_from_qdot(qs, qds)))  # A I w_b
 
     hdot = jax.jacfwd(h_space)(t)
-    return dict(q=q, qd=qd, qdd=qdd, w={"body": wb, "space": jq.rotate(q, wb)},
-                al={"body": ab, "space": jq.rotate(q, ab)}, hdot_space=hdot)
+    return dict(
+        q=q,
+        qd=qd,
+        qdd=qdd,
+        w={"body": wb, "space": jq.rotate(q, wb)},
+        al={"body": ab, "space": jq.rotate(q, ab)},
+        hdot_space=hdot,
+    )
 
 
 def _data(seed):
@@ -57,8 +72,12 @@ def _random_state(seed):
     q /= np.linalg.norm(q, axis=-1, keepdims=True)
     qd = rng.normal(size=(16, 4))
     qd -= (qd * q).sum(-1, keepdims=True) * q
-    return (jnp.asarray(q, DTYPE), jnp.asarray(qd, DTYPE), jnp.asarray(random_inertias(seed), DTYPE),
-            jnp.asarray(rng.normal(size=(16, 3)), DTYPE))
+    return (
+        jnp.asarray(q, DTYPE),
+        jnp.asarray(qd, DTYPE),
+        jnp.asarray(random_inertias(seed), DTYPE),
+        jnp.asarray(rng.normal(size=(16, 3)), DTYPE),
+    )
 
 
 # ------------------------------------------------------------------ Euler's equations
@@ -179,8 +198,12 @@ def test_lagrangian_derivation_by_autodiff():
     _, pdot = jax.jvp(p, (q, qd), (qd, qdd))
     resid = pdot - dl_dq - jq.generalized_force(q, torque)
     tangential = resid - jnp.sum(resid * q, -1)[..., None] * q
-    _close(tangential, np.zeros((16, 4)), "Lagrange equations up to the constraint force",
-           scale=float(jnp.abs(pdot).max() + jnp.abs(dl_dq).max()))
+    _close(
+        tangential,
+        np.zeros((16, 4)),
+        "Lagrange equations up to the constraint force",
+        scale=float(jnp.abs(pdot).max() + jnp.abs(dl_dq).max()),
+    )
     # and the kinetic energy of the mass matrix is the rigid-body kinetic energy
     t_mass = 0.5 * jnp.sum(qd * mv(jq.euler_parameter_mass_matrix(q, inertia), qd), -1)
     _close(t_mass, jq.kinetic_energy(q, jq.omega_from_qdot(q, qd), inertia), "1/2 qdot M qdot = T")

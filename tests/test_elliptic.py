@@ -78,10 +78,25 @@ def test_complete_and_carlson_against_scipy():
     y = np.concatenate([10.0 ** rng.uniform(-12, 0, 30), [1e-30, 0.5]])
     p = rng.uniform(1, 6, 32)
     z = np.ones_like(x)
-    assert_close(elliprf(*(jnp.asarray(v, DTYPE) for v in (x, y, z))) / sp.elliprf(x, y, z), np.ones(32), tol=TOL * 10, what="R_F")
-    assert_close(elliprj(*(jnp.asarray(v, DTYPE) for v in (x, y, z, p))) / sp.elliprj(x, y, z, p), np.ones(32), tol=TOL * 10, what="R_J")
+    assert_close(
+        elliprf(*(jnp.asarray(v, DTYPE) for v in (x, y, z))) / sp.elliprf(x, y, z),
+        np.ones(32),
+        tol=TOL * 10,
+        what="R_F",
+    )
+    assert_close(
+        elliprj(*(jnp.asarray(v, DTYPE) for v in (x, y, z, p))) / sp.elliprj(x, y, z, p),
+        np.ones(32),
+        tol=TOL * 10,
+        what="R_J",
+    )
     a, b, c, d = rng.uniform(0.01, 10, (4, 32))
-    assert_close(elliprj(*(jnp.asarray(v, DTYPE) for v in (a, b, c, d))) / sp.elliprj(a, b, c, d), np.ones(32), tol=TOL * 10, what="R_J generic")
+    assert_close(
+        elliprj(*(jnp.asarray(v, DTYPE) for v in (a, b, c, d))) / sp.elliprj(a, b, c, d),
+        np.ones(32),
+        tol=TOL * 10,
+        what="R_J generic",
+    )
 
 
 def test_incomplete_integrals_unwrap():
@@ -94,7 +109,9 @@ def test_incomplete_integrals_unwrap():
     turns = np.round(phi / (2 * np.pi))
     h, s, c = el._reduced_amplitude(jnp.asarray(np.sin(phi), DTYPE), jnp.asarray(np.cos(phi), DTYPE))
     j_in = (2 * turns + h)[None]
-    f, pi = el._incomplete(j_in, s[None], c[None], jnp.asarray(m, DTYPE), jnp.asarray(1 - m, DTYPE), jnp.asarray(n, DTYPE))
+    f, pi = el._incomplete(
+        j_in, s[None], c[None], jnp.asarray(m, DTYPE), jnp.asarray(1 - m, DTYPE), jnp.asarray(n, DTYPE)
+    )
     j = np.round(phi / np.pi)
     r = phi - j * np.pi
     np.testing.assert_array_equal(np.asarray(j_in[0]), j)
@@ -102,7 +119,9 @@ def test_incomplete_integrals_unwrap():
 
     def pi_ref(phi_):
         s, c = np.sin(phi_), np.cos(phi_)
-        return s * sp.elliprf(c * c, 1 - m * s * s, 1) + n / 3 * s**3 * sp.elliprj(c * c, 1 - m * s * s, 1, 1 - n * s * s)
+        return s * sp.elliprf(c * c, 1 - m * s * s, 1) + n / 3 * s**3 * sp.elliprj(
+            c * c, 1 - m * s * s, 1, 1 - n * s * s
+        )
 
     assert_close(pi[0], 2 * j * pi_ref(np.pi / 2) + pi_ref(r), tol=TOL * 20, what="Pi")
 
@@ -124,7 +143,12 @@ def test_derivative_in_m_at_and_near_one():
         rev = np.stack([_grad_m(u, mm, i) for i in range(3)])
         for got, mode in ((np.asarray(fwd), "fwd"), (rev, "rev")):
             assert np.all(np.isfinite(got))
-            assert_close(got / np.maximum(1.0, np.abs(ref)), ref / np.maximum(1.0, np.abs(ref)), tol=tol, what=f"d/dm at m = {m} ({mode})")
+            assert_close(
+                got / np.maximum(1.0, np.abs(ref)),
+                ref / np.maximum(1.0, np.abs(ref)),
+                tol=tol,
+                what=f"d/dm at m = {m} ({mode})",
+            )
 
 
 _jvp_m = jax.jit(lambda u, m: jax.jvp(lambda x: jnp.stack(ellipj(u, x)[:3]), (m,), (jnp.ones_like(m),)))
@@ -136,9 +160,13 @@ def test_gradients():
     u = jnp.asarray([0.3, -2.0, 7.5])
     for m in (jnp.asarray([0.2, 0.7, 0.95]), jnp.asarray([0.0, 0.0, 0.0])):
         # m = 0 is smooth: the AGM's first step is written without sqrt(m).
-        check_grads(lambda a, b: jnp.stack(ellipj(a, b)), (u, m), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6, eps=1e-6)
+        check_grads(
+            lambda a, b: jnp.stack(ellipj(a, b)), (u, m), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6, eps=1e-6
+        )
     x, y, p = jnp.asarray([0.2, 0.9]), jnp.asarray([0.5, 0.01]), jnp.asarray([1.5, 3.0])
-    check_grads(lambda a, b, c: elliprj(a, b, 1.0, c), (x, y, p), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6, eps=1e-6)
+    check_grads(
+        lambda a, b, c: elliprj(a, b, 1.0, c), (x, y, p), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6, eps=1e-6
+    )
     check_grads(lambda a, b: elliprf(a, b, 1.0), (x, y), order=1, modes=("fwd", "rev"), atol=1e-6, rtol=1e-6, eps=1e-6)
 
 

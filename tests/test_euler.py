@@ -29,7 +29,9 @@ def test_against_scipy(seq):
     ok = np.all(np.abs(np.abs(ref) - np.pi) > 1e-3, axis=-1)
     assert_close(ang[ok], ref[ok], tol=100 * TOL)
     assert_same_rotation(_from[seq](ang), q, tol=20 * TOL)
-    assert_same_rotation(_from[seq](ref.astype(DTYPE)), from_scipy(Rotation.from_euler(seq, ref).as_quat()), tol=20 * TOL)
+    assert_same_rotation(
+        _from[seq](ref.astype(DTYPE)), from_scipy(Rotation.from_euler(seq, ref).as_quat()), tol=20 * TOL
+    )
 
 
 @pytest.mark.parametrize("seq", SEQUENCES)

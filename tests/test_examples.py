@@ -17,7 +17,10 @@ pytestmark = pytest.mark.skipif(not X64, reason="examples run in float64 by desi
 
 def test_fit_rotation_example():
     text = run_example("examples/fit_rotation.py", "--iters", "500")
-    rows = {m.group(1).strip(): m.groups()[1:] for m in re.finditer(r"^(\w+, lr [\d.]+)\s+(\S+)\s+(\S+)\s+(\S+)$", text, re.M)}
+    rows = {
+        m.group(1).strip(): m.groups()[1:]
+        for m in re.finditer(r"^(\w+, lr [\d.]+)\s+(\S+)\s+(\S+)\s+(\S+)$", text, re.M)
+    }
     tangent = rows["tangent, lr 0.1"]
     assert int(tangent[0]) < 500, text  # reaches 1e-8 rad
     assert float(tangent[2]) < 1e-13, text  # |q| stays 1 without renormalisation
@@ -48,11 +51,11 @@ def test_quadrotor_example(tmp_path):
     """RKMK45 with quaternions= against DOP853 at 1e-13 on the raw ODE (measured at t = 3:
     attitude 1e-10 rad, position 2e-10 m, |q| - 1 2.2e-16; Tsit5 on the raw ODE drifts 1e-11)."""
     text = run_example("examples/quadrotor.py", "--t-end", "3", "--out", str(tmp_path))
-    lie = text[text.index("RKMK45 (Lie)"):].splitlines()[0]
+    lie = text[text.index("RKMK45 (Lie)") :].splitlines()[0]
     assert _number(r"attitude error ([\d.e+-]+)", lie) < 1e-8, text
     assert _number(r"position error ([\d.e+-]+)", lie) < 1e-8, text
     assert _number(r"\|q\| - 1\| ([\d.e+-]+)", lie) < 1e-14, text  # no projection step
-    raw = text[text.index("Tsit5 (raw ODE)"):].splitlines()[0]
+    raw = text[text.index("Tsit5 (raw ODE)") :].splitlines()[0]
     assert _number(r"\|q\| - 1\| ([\d.e+-]+)", raw) > 1e-14, text  # the raw ODE drifts
     assert (tmp_path / "quadrotor.png").stat().st_size > 10_000
 
@@ -78,8 +81,19 @@ def test_star_tracker_mekf_example(tmp_path):
     of the attitude errors inside 3 sigma; the gyro and vector-sensor noise learned to 0.967 and
     0.991 of their true values from 10x off (the bias noise is not identifiable from 4 records of
     60 s, the likelihood is flat in it, and is not asserted). About 30 s, most of it compilation."""
-    text = run_example("examples/star_tracker_mekf.py", "--runs", "20", "--steps", "600", "--fit-steps", "60",
-                       "--fit-runs", "4", "--out", str(tmp_path))
+    text = run_example(
+        "examples/star_tracker_mekf.py",
+        "--runs",
+        "20",
+        "--steps",
+        "600",
+        "--fit-steps",
+        "60",
+        "--fit-runs",
+        "4",
+        "--out",
+        str(tmp_path),
+    )
     lo, hi = chi2.ppf([0.025, 0.975], 6 * 20) / 20
     assert lo < _number(r"average NEES ([\d.]+)", text) < hi, text
     assert lo < _number(r"average NIS ([\d.]+)", text) < hi, text

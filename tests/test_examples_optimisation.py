@@ -18,10 +18,15 @@ pytestmark = pytest.mark.skipif(not X64, reason="examples run in float64 by desi
 
 
 def test_min_energy_slew_example(tmp_path):
-    text = run_example("examples/min_energy_slew.py", "--outer", "4", "--inner", "30", "--steps", "100", "--out", str(tmp_path))
+    text = run_example(
+        "examples/min_energy_slew.py", "--outer", "4", "--inner", "30", "--steps", "100", "--out", str(tmp_path)
+    )
     excess = float(re.search(r"optimum 12 theta\^2 / T\^3 = [\d.]+: ([+-][\d.]+) %", text).group(1))
     assert abs(excess) < 0.5, text  # the issue's target: within 0.5 % of the analytic optimum
-    att, rate = (float(x) for x in re.search(r"terminal attitude error ([\d.e+-]+) rad, terminal rate ([\d.e+-]+)", text).groups())
+    att, rate = (
+        float(x)
+        for x in re.search(r"terminal attitude error ([\d.e+-]+) rad, terminal rate ([\d.e+-]+)", text).groups()
+    )
     assert att < 1e-4 and rate < 1e-4, text
     assert (tmp_path / "min_energy_slew.png").stat().st_size > 10_000
 
@@ -34,9 +39,21 @@ def test_inertia_identification_example(tmp_path):
 
 
 def test_learned_controller_example(tmp_path):
-    text = run_example("examples/learned_controller.py", "--steps", "6", "--batch", "16", "--bodies", "64",
-                "--no-progress", "--out", str(tmp_path))
+    text = run_example(
+        "examples/learned_controller.py",
+        "--steps",
+        "6",
+        "--batch",
+        "16",
+        "--bodies",
+        "64",
+        "--no-progress",
+        "--out",
+        str(tmp_path),
+    )
     before = float(re.search(r"untrained: success rate [\d.]+ %, mean cost ([\d.]+)", text).group(1))
-    after = float(re.search(r"trained \(6 Adam steps, batch 16\): success rate [\d.]+ %, mean cost ([\d.]+)", text).group(1))
+    after = float(
+        re.search(r"trained \(6 Adam steps, batch 16\): success rate [\d.]+ %, mean cost ([\d.]+)", text).group(1)
+    )
     assert after < 0.9 * before, text  # training through the batched simulation lowers the cost
     assert (tmp_path / "learned_controller.png").stat().st_size > 10_000

@@ -8,7 +8,18 @@ from hypothesis import given
 from scipy.spatial.transform import Rotation, Slerp
 
 import jaxquat as jq
-from helpers import DTYPE, TOL, X64, assert_close, assert_same_rotation, from_scipy, random_quats, random_vectors, seeds, to_scipy
+from helpers import (
+    DTYPE,
+    TOL,
+    X64,
+    assert_close,
+    assert_same_rotation,
+    from_scipy,
+    random_quats,
+    random_vectors,
+    seeds,
+    to_scipy,
+)
 
 angle = jax.jit(jq.angle)
 angle_between = jax.jit(jq.angle_between)
@@ -140,14 +151,19 @@ def test_slerp_stable_as_p_approaches_q():
 
 # ------------------------------------------------------------------ bad input: empty sets, weights, no information
 
+
 def test_mean_rejects_an_empty_set_and_bad_weights():
     with pytest.raises(ValueError, match=r"'q' must hold at least one rotation.*\(0, 4\)"):
         jq.mean(jnp.zeros((0, 4), DTYPE))
     with pytest.raises(ValueError, match=r"'q' must hold at least one rotation"):
         jax.jit(jq.mean)(jnp.zeros((3, 0, 4), DTYPE))  # at trace time
     q = jnp.asarray(random_quats(3, 4), DTYPE)
-    for w, match in [([1.0, -1.0, 1.0, 1.0], "non-negative"), ([0.0] * 4, "positive sum"),
-                     ([1.0, np.nan, 1.0, 1.0], "finite"), ([1.0, np.inf, 1.0, 1.0], "finite")]:
+    for w, match in [
+        ([1.0, -1.0, 1.0, 1.0], "non-negative"),
+        ([0.0] * 4, "positive sum"),
+        ([1.0, np.nan, 1.0, 1.0], "finite"),
+        ([1.0, np.inf, 1.0, 1.0], "finite"),
+    ]:
         with pytest.raises(ValueError, match=f"'weights' must.*{match}"):
             jq.mean(q, jnp.asarray(w, DTYPE))
 

@@ -46,12 +46,22 @@ def _symmetric_top(ts, it, i3, w0):
 
 
 @pytest.mark.skipif(not X64, reason="accuracy bars are float64 figures")
-@pytest.mark.parametrize("name,dt,bound", [("RKMK45", None, 1e-7), ("RKMK4", 0.01, 1e-8), ("RigidBodySplit4", 0.01, 5e-7)])
+@pytest.mark.parametrize(
+    "name,dt,bound", [("RKMK45", None, 1e-7), ("RKMK4", 0.01, 1e-8), ("RigidBodySplit4", 0.01, 5e-7)]
+)
 def test_symmetric_top_closed_form(name, dt, bound):
     it, i3, w0 = 2.0, 3.5, np.array([0.4, -0.3, 1.3])
     ts = np.linspace(0.0, 50.0, 11)
-    sim = jq.simulate(jq.identity(), jnp.asarray(w0), jnp.diag(jnp.asarray([it, it, i3])), jnp.asarray(ts),
-                      solver=SOLVERS[name][0], dt0=dt, rtol=1e-11, atol=1e-11)
+    sim = jq.simulate(
+        jq.identity(),
+        jnp.asarray(w0),
+        jnp.diag(jnp.asarray([it, it, i3])),
+        jnp.asarray(ts),
+        solver=SOLVERS[name][0],
+        dt0=dt,
+        rtol=1e-11,
+        atol=1e-11,
+    )
     err = np.asarray(jq.angle_between(sim.q, _symmetric_top(ts, it, i3, w0)))
     assert err.max() < bound, err
 
@@ -60,9 +70,22 @@ def test_symmetric_top_closed_form(name, dt, bound):
 def test_asymmetric_top_against_dop853_and_invariants():
     ts = np.linspace(0.0, 100.0, 21)
     q_ref, w_ref = _dop853(100.0, ts)
-    for name, dt, bound in (("RKMK45", None, 1e-6), ("RKMK4", 0.01, 1e-8), ("RigidBodySplit", 0.01, 1e-4), ("RigidBodySplit4", 0.01, 1e-7)):
-        sim = jq.simulate(jq.identity(), jnp.asarray(W0), jnp.diag(jnp.asarray(I_DIAG)), jnp.asarray(ts),
-                          solver=SOLVERS[name][0], dt0=dt, rtol=1e-10, atol=1e-10)
+    for name, dt, bound in (
+        ("RKMK45", None, 1e-6),
+        ("RKMK4", 0.01, 1e-8),
+        ("RigidBodySplit", 0.01, 1e-4),
+        ("RigidBodySplit4", 0.01, 1e-7),
+    ):
+        sim = jq.simulate(
+            jq.identity(),
+            jnp.asarray(W0),
+            jnp.diag(jnp.asarray(I_DIAG)),
+            jnp.asarray(ts),
+            solver=SOLVERS[name][0],
+            dt0=dt,
+            rtol=1e-10,
+            atol=1e-10,
+        )
         err = np.asarray(jq.angle_between(sim.q, jnp.asarray(q_ref)))
         assert err.max() < bound, (name, err.max())
         inv = jq.invariants(sim.q, sim.omega, jnp.diag(jnp.asarray(I_DIAG)))
@@ -91,8 +114,16 @@ def test_measured_convergence_order(name):
 
 def _fixed(solver, dt, t_end):
     term = diffrax.ODETerm(jq.RigidBody(jnp.diag(jnp.asarray(I_DIAG))))
-    sol = diffrax.diffeqsolve(term, solver, 0.0, t_end, dt, (jq.identity(), jnp.asarray(W0)),
-                              stepsize_controller=diffrax.ConstantStepSize(), max_steps=10_000)
+    sol = diffrax.diffeqsolve(
+        term,
+        solver,
+        0.0,
+        t_end,
+        dt,
+        (jq.identity(), jnp.asarray(W0)),
+        stepsize_controller=diffrax.ConstantStepSize(),
+        max_steps=10_000,
+    )
     return sol.ys[0]
 
 
@@ -106,9 +137,17 @@ def _constant_torque(t, q, w, k):
 
 def _final_attitude_loss(**simulate_options):
     """loss(omega0, principal moments, torque gain) on the attitude at t = 1.5."""
+
     def loss(w0, moments, k):
-        sim = jq.simulate(jq.identity(), w0, jnp.diag(moments), jnp.asarray([0.0, 1.5]),
-                          torque=_constant_torque, args=k, **simulate_options)
+        sim = jq.simulate(
+            jq.identity(),
+            w0,
+            jnp.diag(moments),
+            jnp.asarray([0.0, 1.5]),
+            torque=_constant_torque,
+            args=k,
+            **simulate_options,
+        )
         return jnp.sum((sim.q[-1] - jq.from_rotvec(jnp.asarray(_TARGET))) ** 2)
 
     return loss
@@ -120,6 +159,7 @@ def _check_gradients_against_central_differences(loss, what):
     grad_fn = jax.jit(jax.grad(loss, argnums=(0, 1, 2)))
     loss_fn = jax.jit(loss)  # one compilation serves every finite-difference evaluation
     for i, g in enumerate(grad_fn(*args)):
+
         def partial(x, i=i):
             a = list(args)
             a[i] = x
@@ -136,7 +176,8 @@ def test_gradients_through_the_solve_match_finite_differences():
     """grad of a final-attitude loss w.r.t. omega0, the inertia and a torque parameter
     (RecursiveCheckpointAdjoint), against central differences; finite for a body at rest."""
     grad_fn = _check_gradients_against_central_differences(
-        _final_attitude_loss(solver=jq.RKMK4(), dt0=0.01), "RecursiveCheckpointAdjoint")
+        _final_attitude_loss(solver=jq.RKMK4(), dt0=0.01), "RecursiveCheckpointAdjoint"
+    )
     at_rest = grad_fn(jnp.zeros(3), jnp.asarray(_GRAD_ARGS[1]), jnp.asarray(_GRAD_ARGS[2]))
     assert all(np.all(np.isfinite(np.asarray(g))) for g in at_rest)
 
@@ -158,8 +199,16 @@ def test_batched_simulation_matches_single_runs_and_keeps_dtype():
 def test_dense_output_stays_unit():
     term = diffrax.ODETerm(jq.RigidBody(jnp.diag(jnp.asarray(I_DIAG, DTYPE))))
     y0 = (jq.identity((), DTYPE), jnp.asarray(W0, DTYPE))
-    sol = diffrax.diffeqsolve(term, jq.RKMK45(), 0.0, 5.0, 0.1, y0, saveat=diffrax.SaveAt(dense=True),
-                              stepsize_controller=diffrax.PIDController(rtol=1e-6, atol=1e-6))
+    sol = diffrax.diffeqsolve(
+        term,
+        jq.RKMK45(),
+        0.0,
+        5.0,
+        0.1,
+        y0,
+        saveat=diffrax.SaveAt(dense=True),
+        stepsize_controller=diffrax.PIDController(rtol=1e-6, atol=1e-6),
+    )
     qs = jnp.stack([sol.evaluate(t)[0] for t in np.linspace(0.05, 4.95, 7)])
     assert float(jnp.abs(jq.norm(qs) - 1).max()) < (1e-13 if X64 else 1e-6)
 
@@ -173,8 +222,16 @@ def test_euler_parameter_body_is_the_same_motion():
     assert_close(ep(0.0, (q0, qd0), None)[1], jq.euler_parameter_acceleration(q0, qd0, inertia), tol=0)
     ts = jnp.linspace(0.0, 5.0, 6, dtype=DTYPE)
     tol = 1e-10 if X64 else 1e-5
-    sol = diffrax.diffeqsolve(diffrax.ODETerm(ep), diffrax.Tsit5(), 0.0, 5.0, 0.01, (q0, qd0),
-                              saveat=diffrax.SaveAt(ts=ts), stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol))
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(ep),
+        diffrax.Tsit5(),
+        0.0,
+        5.0,
+        0.01,
+        (q0, qd0),
+        saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol),
+    )
     ref = jq.simulate(q0, w0, inertia, ts, rtol=tol, atol=tol)
     assert float(jnp.max(jq.angle_between(sol.ys[0], ref.q))) < (1e-8 if X64 else 1e-3)
     assert_close(jq.omega_from_qdot(sol.ys[0], sol.ys[1]), ref.omega, tol=1e-7 if X64 else 1e-3)
@@ -187,8 +244,9 @@ def test_bad_input():
         jq.simulate(jq.identity(), jnp.zeros(3), inertia, ts, solver=jq.RKMK4())
     full = inertia.at[0, 1].set(0.1).at[1, 0].set(0.1)
     with pytest.raises(Exception, match="needs the inertia in principal axes"):  # run-time check (eqx.error_if)
-        diffrax.diffeqsolve(diffrax.ODETerm(jq.RigidBody(full)), jq.RigidBodySplit(), 0.0, 1.0, 0.1,
-                            (jq.identity(), jnp.ones(3)))
+        diffrax.diffeqsolve(
+            diffrax.ODETerm(jq.RigidBody(full)), jq.RigidBodySplit(), 0.0, 1.0, 0.1, (jq.identity(), jnp.ones(3))
+        )
     with pytest.raises(ValueError, match=r"argument 'ts' must be shaped \(n,\)"):
         jq.simulate(jq.identity(), jnp.zeros(3), inertia, jnp.zeros(1))
     with pytest.raises(ValueError, match=r"argument 'omega0' must be a 3-vector array"):
@@ -206,8 +264,9 @@ def _kicked_torque(t, q, w, args):
 def _kicked_reference():
     """The forced motion at t = 4 by RKMK45 at rtol = atol = 1e-13 (computed once for the four splittings)."""
     inertia = jnp.diag(jnp.asarray(I_DIAG))
-    return jq.simulate(jq.identity(), jnp.asarray(W0), inertia, jnp.asarray([0.0, 4.0]), torque=_kicked_torque,
-                       rtol=1e-13, atol=1e-13).q[-1]
+    return jq.simulate(
+        jq.identity(), jnp.asarray(W0), inertia, jnp.asarray([0.0, 4.0]), torque=_kicked_torque, rtol=1e-13, atol=1e-13
+    ).q[-1]
 
 
 @pytest.mark.skipif(not X64, reason="convergence orders are measured in float64")
@@ -220,8 +279,17 @@ def test_splitting_order_with_a_torque(name):
     ts = jnp.asarray([0.0, 4.0])
     ref = _kicked_reference()
     dts = (0.02, 0.01) if order == 2 else (0.1, 0.05)
-    errs = [float(jq.angle_between(jq.simulate(jq.identity(), jnp.asarray(W0), inertia, ts, torque=_kicked_torque,
-                                               solver=solver, dt0=dt).q[-1], ref)) for dt in dts]
+    errs = [
+        float(
+            jq.angle_between(
+                jq.simulate(
+                    jq.identity(), jnp.asarray(W0), inertia, ts, torque=_kicked_torque, solver=solver, dt0=dt
+                ).q[-1],
+                ref,
+            )
+        )
+        for dt in dts
+    ]
     measured = np.log2(errs[0] / errs[1])
     assert abs(measured - order) < 0.2, (name, errs, measured)
 
@@ -233,8 +301,14 @@ def test_euler_poinsot_split_is_exact_without_torque_and_takes_full_tensors():
     back) for the splittings: same motion as RKMK45 on the full tensor."""
     ts = np.linspace(0.0, 100.0, 11)
     q_ref, w_ref = _dop853(100.0, ts)
-    sim = jq.simulate(jq.identity(), jnp.asarray(W0), jnp.diag(jnp.asarray(I_DIAG)), jnp.asarray(ts),
-                      solver=jq.EulerPoinsotSplit(), dt0=10.0)
+    sim = jq.simulate(
+        jq.identity(),
+        jnp.asarray(W0),
+        jnp.diag(jnp.asarray(I_DIAG)),
+        jnp.asarray(ts),
+        solver=jq.EulerPoinsotSplit(),
+        dt0=10.0,
+    )
     assert float(jnp.max(jq.angle_between(sim.q, jnp.asarray(q_ref)))) < 1e-10
     assert_close(sim.omega, w_ref, tol=1e-10, what="w")
     full = jnp.asarray([[2.0, 0.3, -0.1], [0.3, 2.5, 0.2], [-0.1, 0.2, 3.0]])
@@ -251,9 +325,12 @@ def test_backsolve_adjoint_gradients():
     pass with a generic solver, and with the same Lie solver (the mask then applies to the
     state part of the augmented state). Gradients in omega0, the inertia and a torque
     parameter agree with central differences to 1e-6 relative both ways."""
-    backward = diffrax.BacksolveAdjoint(solver=diffrax.Tsit5(), stepsize_controller=diffrax.PIDController(rtol=1e-11, atol=1e-11))
+    backward = diffrax.BacksolveAdjoint(
+        solver=diffrax.Tsit5(), stepsize_controller=diffrax.PIDController(rtol=1e-11, atol=1e-11)
+    )
     _check_gradients_against_central_differences(
-        _final_attitude_loss(rtol=1e-11, atol=1e-11, adjoint=backward), "BacksolveAdjoint")
+        _final_attitude_loss(rtol=1e-11, atol=1e-11, adjoint=backward), "BacksolveAdjoint"
+    )
     lie_backward = _final_attitude_loss(rtol=1e-11, atol=1e-11, adjoint=diffrax.BacksolveAdjoint())
     _check_gradients_against_central_differences(lie_backward, "BacksolveAdjoint with RKMK45 backward")
 
@@ -273,8 +350,17 @@ def test_scan_path_matches_diffeqsolve(solver):
     inertia = jnp.stack([jnp.diag(jnp.asarray(I_DIAG * s, DTYPE)) for s in (1.0, 1.5, 2.0)])
     ts = np.linspace(0.0, 2.0, 5)
     fast = jq.simulate(q0, w0, inertia, ts, torque=_spin_torque, args=0.3, solver=solver, dt0=0.03)
-    slow = jq.simulate(q0, w0, inertia, ts, torque=_spin_torque, args=0.3, solver=solver, dt0=0.5 / 17,
-                       adjoint=diffrax.RecursiveCheckpointAdjoint())
+    slow = jq.simulate(
+        q0,
+        w0,
+        inertia,
+        ts,
+        torque=_spin_torque,
+        args=0.3,
+        solver=solver,
+        dt0=0.5 / 17,
+        adjoint=diffrax.RecursiveCheckpointAdjoint(),
+    )
     assert fast.solution is None and slow.solution is not None
     assert_close(fast.q, slow.q, tol=1e-11 if X64 else 2e-5, what="q")
     assert_close(fast.omega, slow.omega, tol=1e-11 if X64 else 2e-5, what="omega")
@@ -322,8 +408,13 @@ def test_simulate_rejects_bad_times_steps_and_solvers(kwargs, error, match):
     args.update(kwargs)
     ts = jnp.asarray(args.pop("ts"), DTYPE)
     with pytest.raises(error, match=match):
-        jq.simulate(jnp.asarray([1.0, 0, 0, 0], DTYPE), jnp.asarray([0.1, 1.0, 0.1], DTYPE),
-                    jnp.diag(jnp.asarray([1.0, 2.0, 3.0], DTYPE)), ts, **args)
+        jq.simulate(
+            jnp.asarray([1.0, 0, 0, 0], DTYPE),
+            jnp.asarray([0.1, 1.0, 0.1], DTYPE),
+            jnp.diag(jnp.asarray([1.0, 2.0, 3.0], DTYPE)),
+            ts,
+            **args,
+        )
 
 
 def test_simulate_checks_a_traced_ts_at_run_time():
@@ -356,8 +447,12 @@ def test_default_torque_free_simulate_keeps_unit_norm_over_many_saved_times():
     """Float32, 10^4 saved times: chained from each saved time to the next the norm drifted to 2.2e-4;
     evaluated from the initial state it stays at rounding level."""
     ts = jnp.linspace(0.0, 1000.0, 10_001, dtype=DTYPE)
-    r = jq.simulate(jnp.asarray([1.0, 0, 0, 0], DTYPE), jnp.asarray([0.1, 1.0, 0.1], DTYPE),
-                    jnp.diag(jnp.asarray([1.0, 2.0, 3.0], DTYPE)), ts)
+    r = jq.simulate(
+        jnp.asarray([1.0, 0, 0, 0], DTYPE),
+        jnp.asarray([0.1, 1.0, 0.1], DTYPE),
+        jnp.diag(jnp.asarray([1.0, 2.0, 3.0], DTYPE)),
+        ts,
+    )
     deviation = float(jnp.max(jnp.abs(jnp.linalg.norm(r.q, axis=-1) - 1)))
     assert deviation < (1e-13 if X64 else 1e-6)
 
@@ -375,12 +470,14 @@ def test_forward_mode_through_simulate():
         return jnp.asarray([0.1, 0.0, -0.05], DTYPE) * jnp.cos(t)
 
     def forced(adjoint):  # diffeqsolve (an adjoint is given), fixed steps to keep the compile short
-        return lambda w: jq.simulate(q0, w, inertia, ts, torque=torque, adjoint=adjoint, solver=jq.RKMK4(),
-                                     dt0=0.05).q[-1]
+        return lambda w: jq.simulate(q0, w, inertia, ts, torque=torque, adjoint=adjoint, solver=jq.RKMK4(), dt0=0.05).q[
+            -1
+        ]
 
     with pytest.raises(TypeError, match=r"adjoint=diffrax\.ForwardMode\(\)"):
         jax.jacfwd(forced(diffrax.RecursiveCheckpointAdjoint()))(w0)
     h = 1e-5 if X64 else 1e-2
+
     def final(w, inertia):
         return jq.simulate(q0, w, inertia, ts).q[-1]
 
@@ -388,11 +485,21 @@ def test_forward_mode_through_simulate():
     jac_closed_form = jax.jit(jax.jacfwd(final))
     grad_closed_form = jax.jit(jax.grad(lambda w, inertia: final(w, inertia)[1]))
     # The second state is on the separatrix (|L|^2 = 2 E I_mid), where both modes gave NaN.
-    for w, inertia_ in ((w0, inertia), (jnp.asarray([2.0, 0.5, 1.0], DTYPE), jnp.diag(jnp.asarray([3.0, 4.0, 6.0], DTYPE)))):
-        fd = jnp.stack([(closed_form(w + h * e, inertia_) - closed_form(w - h * e, inertia_)) / (2 * h)
-                        for e in jnp.eye(3, dtype=DTYPE)], -1)
+    for w, inertia_ in (
+        (w0, inertia),
+        (jnp.asarray([2.0, 0.5, 1.0], DTYPE), jnp.diag(jnp.asarray([3.0, 4.0, 6.0], DTYPE))),
+    ):
+        fd = jnp.stack(
+            [
+                (closed_form(w + h * e, inertia_) - closed_form(w - h * e, inertia_)) / (2 * h)
+                for e in jnp.eye(3, dtype=DTYPE)
+            ],
+            -1,
+        )
         assert_close(jac_closed_form(w, inertia_), fd, tol=1e-8 if X64 else 2e-3, what=f"jacfwd vs differences at {w}")
-        assert_close(grad_closed_form(w, inertia_), fd[1], tol=1e-8 if X64 else 2e-3, what=f"grad vs differences at {w}")
+        assert_close(
+            grad_closed_form(w, inertia_), fd[1], tol=1e-8 if X64 else 2e-3, what=f"grad vs differences at {w}"
+        )
     f = forced(diffrax.ForwardMode())
     value = jax.jit(f)
     fd = jnp.stack([(value(w0 + h * e) - value(w0 - h * e)) / (2 * h) for e in jnp.eye(3, dtype=DTYPE)], -1)
@@ -410,8 +517,15 @@ def test_splittings_keep_unit_norm_and_the_invariants_over_many_steps_torque_fre
     (without it 2.3e-4 and 2.1e-3 after 10^5 steps; with it 1.2e-7)."""
     moments = jnp.asarray([1.0, 2.0, 3.0], DTYPE)
     w0 = jnp.asarray([[0.05, 0.02, 1.0], [1.0, 0.3, 0.2], [0.1, 1.0, 0.1]], DTYPE)
-    r = jq.simulate(jnp.asarray([1.0, 0, 0, 0], DTYPE), w0, jnp.diag(moments), jnp.linspace(0.0, 1000.0, 11, dtype=DTYPE),
-                    solver=solver, dt0=0.01, max_steps=100_010)
+    r = jq.simulate(
+        jnp.asarray([1.0, 0, 0, 0], DTYPE),
+        w0,
+        jnp.diag(moments),
+        jnp.linspace(0.0, 1000.0, 11, dtype=DTYPE),
+        solver=solver,
+        dt0=0.01,
+        max_steps=100_010,
+    )
     m = moments[None, None] * r.omega
     casimir, energy = jnp.sum(m * m, -1), jnp.sum(m * r.omega, -1)
     casimir_drift = float(jnp.max(jnp.abs(casimir / casimir[:, :1] - 1)))
@@ -428,8 +542,18 @@ def test_progress_without_tqdm_names_the_optional_dependency(monkeypatch):
 
     monkeypatch.setitem(sys.modules, "tqdm", None)  # import tqdm raises ImportError
     with pytest.raises(ImportError, match=r"simulate\(progress=True\) needs tqdm.*jaxquat\[progress\]"):
-        jq.simulate(jnp.asarray([1.0, 0, 0, 0], DTYPE), jnp.asarray([0.1, 1.0, 0.1], DTYPE),
-                    jnp.eye(3, dtype=DTYPE), jnp.asarray([0.0, 1.0], DTYPE), progress=True)
+        jq.simulate(
+            jnp.asarray([1.0, 0, 0, 0], DTYPE),
+            jnp.asarray([0.1, 1.0, 0.1], DTYPE),
+            jnp.eye(3, dtype=DTYPE),
+            jnp.asarray([0.0, 1.0], DTYPE),
+            progress=True,
+        )
     with pytest.raises(ImportError, match=r"minimum_time_reorientation\(progress=True\) needs tqdm"):
-        jq.minimum_time_reorientation(jnp.eye(3, dtype=DTYPE), jnp.ones(3, DTYPE), jnp.asarray([1.0, 0, 0, 0], DTYPE),
-                                      jnp.asarray([0.0, 1.0, 0, 0], DTYPE), progress=True)
+        jq.minimum_time_reorientation(
+            jnp.eye(3, dtype=DTYPE),
+            jnp.ones(3, DTYPE),
+            jnp.asarray([1.0, 0, 0, 0], DTYPE),
+            jnp.asarray([0.0, 1.0, 0, 0], DTYPE),
+            progress=True,
+        )

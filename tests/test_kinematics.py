@@ -33,6 +33,8 @@ def _curve_state(c, scale):
 def _jit_state(seed, scale):
     """One compiled function for every seed (the seed only changes the coefficients)."""
     return _curve_state(jnp.asarray(curve_coefficients(seed), DTYPE), jnp.asarray(float(scale), DTYPE))
+
+
 TOL_K = 1e-11 if X64 else 5e-5  # quantities of O(1)-O(10) on the test curves
 
 
@@ -161,7 +163,9 @@ def test_point_velocity_and_acceleration_against_autodiff(frame):
     _close(jq.point_velocity(st["q"], w, r, rd, frame=frame), v, "point velocity")
     _close(jq.point_acceleration(st["q"], w, al, r, rd, rdd, frame=frame), acc, "point acceleration")
     # body-fixed point (defaults)
-    p_fixed, v_fixed, a_fixed = jax.jit(lambda s: time_derivatives(lambda u: jq.rotate(attitude_curve(c, u), r0), s, 2))(t)
+    p_fixed, v_fixed, a_fixed = jax.jit(
+        lambda s: time_derivatives(lambda u: jq.rotate(attitude_curve(c, u), r0), s, 2)
+    )(t)
     _close(jq.point_velocity(st["q"], w, r0, frame=frame), v_fixed, "fixed point velocity")
     _close(jq.point_acceleration(st["q"], w, al, r0, frame=frame), a_fixed, "fixed point acceleration")
 

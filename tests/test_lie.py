@@ -82,7 +82,9 @@ def test_plus_minus_round_trip(seed):
         assert_close(jq.minus(jq.plus(q, d, frame), q, frame), d, tol=1e3 * TOL, what=f"minus(plus) {frame}")
         assert_close(jq.norm(jq.plus(q, d, frame)), np.ones(16), tol=10 * TOL)
     # body and space perturbations are related by the adjoint
-    assert_same_rotation(jq.plus(q, d), jq.plus(q, jnp.einsum("...ij,...j->...i", jq.adjoint(q), d), "space"), tol=100 * TOL)
+    assert_same_rotation(
+        jq.plus(q, d), jq.plus(q, jnp.einsum("...ij,...j->...i", jq.adjoint(q), d), "space"), tol=100 * TOL
+    )
     # minus is sign-invariant in both arguments
     assert_close(jq.minus(-q, q), np.zeros((16, 3)), tol=10 * TOL)
 
@@ -107,7 +109,8 @@ def _grads(q, target, v):
     g = jax.vmap(jax.grad(_loss))(q, target, v)
     along = {
         frame: jax.vmap(jax.grad(lambda d, qq, tt, vv, f=frame: _loss(jq.plus(qq, d, f), tt, vv)), (None, 0, 0, 0))(
-            jnp.zeros(3, q.dtype), q, target, v)
+            jnp.zeros(3, q.dtype), q, target, v
+        )
         for frame in ("body", "space")
     }
     return g, along

@@ -44,8 +44,10 @@ quadrotor = _model()
 
 def _y0(dtype=DTYPE):
     return {
-        "r": jnp.zeros(3, dtype), "v": jnp.asarray([1.0, 0.0, 0.5], dtype),
-        "q": jq.from_rotvec(jnp.asarray([0.3, -0.2, 0.1], dtype)), "w": jnp.asarray([2.0, -1.0, 3.0], dtype),
+        "r": jnp.zeros(3, dtype),
+        "v": jnp.asarray([1.0, 0.0, 0.5], dtype),
+        "q": jq.from_rotvec(jnp.asarray([0.3, -0.2, 0.1], dtype)),
+        "w": jnp.asarray([2.0, -1.0, 3.0], dtype),
     }
 
 
@@ -53,6 +55,7 @@ def _raw_rhs(thrust):
     """The quadrotor's raw 13-dimensional ODE in NumPy float64, written out independently of
     jaxquat (rotation matrix from the quaternion, Euler's equations for a diagonal tensor), so
     scipy's reference is float64 whatever JAX's precision mode."""
+
     def rhs(t, x):
         v, q, w = x[3:6], x[6:10], x[10:]
         a, b, c, d = q / np.linalg.norm(q)
@@ -63,6 +66,7 @@ def _raw_rhs(thrust):
         qw, qv = q[0], q[1:]
         qdot = 0.5 * np.concatenate([[-qv @ w], qw * w + np.cross(qv, w)])
         return np.concatenate([v, accel, qdot, wdot])
+
     return rhs
 
 
@@ -94,8 +98,18 @@ def _fixed_solve(name):
 
     @jax.jit
     def run(dt0):
-        return diffrax.diffeqsolve(diffrax.ODETerm(quadrotor), solver, 0.0, T_END, dt0, _y0(), args=THRUST,
-                                   stepsize_controller=diffrax.ConstantStepSize(), max_steps=1024).ys
+        return diffrax.diffeqsolve(
+            diffrax.ODETerm(quadrotor),
+            solver,
+            0.0,
+            T_END,
+            dt0,
+            _y0(),
+            args=THRUST,
+            stepsize_controller=diffrax.ConstantStepSize(),
+            max_steps=1024,
+        ).ys
+
     return run
 
 
@@ -130,9 +144,18 @@ def test_step_control_dense_output_and_saveat(name):
     solver = SOLVERS[name][0]
     tol = 1e-9 if X64 else 1e-5
     ts = jnp.linspace(0.0, T_END, 5, dtype=DTYPE)
-    sol = diffrax.diffeqsolve(diffrax.ODETerm(quadrotor), solver, 0.0, T_END, 0.01, _y0(), args=THRUST,
-                              stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol),
-                              saveat=diffrax.SaveAt(ts=ts, t1=True, dense=True), max_steps=4096)
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(quadrotor),
+        solver,
+        0.0,
+        T_END,
+        0.01,
+        _y0(),
+        args=THRUST,
+        stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol),
+        saveat=diffrax.SaveAt(ts=ts, t1=True, dense=True),
+        max_steps=4096,
+    )
     final = jax.tree.map(lambda x: x[-1], sol.ys)
     assert _error(final, _reference()) < (1e-7 if X64 else 2e-3)
     assert int(sol.stats["num_accepted_steps"]) < 400
@@ -154,15 +177,25 @@ def test_step_control_dense_output_and_saveat(name):
 def test_terminating_event_finds_the_crossing():
     """The quadrotor with weak thrust sinks; an event stops it when the altitude falls to -0.5 m.
     The root finder's time agrees with scipy's DOP853 event time."""
+
     def altitude(t, y, args, **kwargs):
         return y["r"][2] + 0.5
 
     solver = jq.RKMK45(quaternions=MASK)
     tol = 1e-10 if X64 else 1e-6  # the root finder too: float32 cannot meet 1e-10
     event = diffrax.Event(altitude, root_finder=optx.Newton(rtol=tol, atol=tol))
-    sol = diffrax.diffeqsolve(diffrax.ODETerm(quadrotor), solver, 0.0, 5.0, 0.01, _y0(), args=6.0,
-                              stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol), event=event,
-                              max_steps=4096)
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(quadrotor),
+        solver,
+        0.0,
+        5.0,
+        0.01,
+        _y0(),
+        args=6.0,
+        stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol),
+        event=event,
+        max_steps=4096,
+    )
     hit = lambda t, x: x[2] + 0.5  # noqa: E731
     hit.terminal = True
     ref = solve_ivp(_raw_rhs(6.0), (0.0, 5.0), _flat_y0(), method="DOP853", rtol=1e-12, atol=1e-12, events=hit)
@@ -175,17 +208,30 @@ def test_terminating_event_finds_the_crossing():
 def _loss(adjoint):
     def loss(w0, thrust):
         y0 = dict(_y0(), w=w0)
-        sol = diffrax.diffeqsolve(diffrax.ODETerm(quadrotor), jq.RKMK45(quaternions=MASK), 0.0, 1.0, 0.01, y0,
-                                  args=thrust, stepsize_controller=diffrax.PIDController(rtol=1e-11, atol=1e-11),
-                                  adjoint=adjoint, max_steps=4096)
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(quadrotor),
+            jq.RKMK45(quaternions=MASK),
+            0.0,
+            1.0,
+            0.01,
+            y0,
+            args=thrust,
+            stepsize_controller=diffrax.PIDController(rtol=1e-11, atol=1e-11),
+            adjoint=adjoint,
+            max_steps=4096,
+        )
         y = jax.tree.map(lambda x: x[-1], sol.ys)
         return jnp.sum(y["q"] * jnp.asarray([0.1, 0.7, -0.3, 0.2])) + jnp.sum(y["r"] ** 2)
+
     return loss
 
 
 @pytest.mark.skipif(not X64, reason="finite differences need float64")
-@pytest.mark.parametrize("adjoint", [diffrax.RecursiveCheckpointAdjoint(), diffrax.BacksolveAdjoint()],
-                         ids=["RecursiveCheckpoint", "Backsolve"])
+@pytest.mark.parametrize(
+    "adjoint",
+    [diffrax.RecursiveCheckpointAdjoint(), diffrax.BacksolveAdjoint()],
+    ids=["RecursiveCheckpoint", "Backsolve"],
+)
 def test_gradients_through_both_adjoints_match_finite_differences(adjoint):
     """d loss / d (w0, thrust) against central differences (step 1e-6) to 1e-6 relative; the
     backward solve of BacksolveAdjoint runs the same Lie solver on the augmented state."""
@@ -208,8 +254,9 @@ def test_vmap_tuple_mask_and_float32_unit_norm():
     rates = jnp.asarray(np.random.default_rng(0).normal(size=(8, 3)), DTYPE)
 
     def run(w0):
-        return diffrax.diffeqsolve(diffrax.ODETerm(quadrotor), solver, 0.0, 2.0, 0.004, dict(_y0(), w=w0),
-                                   args=THRUST, max_steps=600).ys
+        return diffrax.diffeqsolve(
+            diffrax.ODETerm(quadrotor), solver, 0.0, 2.0, 0.004, dict(_y0(), w=w0), args=THRUST, max_steps=600
+        ).ys
 
     batched = jax.jit(jax.vmap(run))(rates)
     one = jax.jit(run)(rates[3])
@@ -221,8 +268,16 @@ def test_vmap_tuple_mask_and_float32_unit_norm():
         return tuple(d[k] for k in ("r", "v", "q", "w"))
 
     y0 = _y0()
-    sol = diffrax.diffeqsolve(diffrax.ODETerm(as_tuple), jq.RKMK4(quaternions=(False, False, True, False)), 0.0, 2.0,
-                              0.004, tuple(y0[k] for k in ("r", "v", "q", "w")), args=THRUST, max_steps=600)
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(as_tuple),
+        jq.RKMK4(quaternions=(False, False, True, False)),
+        0.0,
+        2.0,
+        0.004,
+        tuple(y0[k] for k in ("r", "v", "q", "w")),
+        args=THRUST,
+        max_steps=600,
+    )
     assert_close(sol.ys[2], jax.jit(run)(y0["w"])["q"], tol=1e-12 if X64 else 1e-5)
 
 
@@ -231,8 +286,17 @@ def test_the_fixed_step_driver_matches_diffeqsolve_on_a_user_model():
     solver = jq.RKMK4(quaternions=MASK)
     ts = jnp.linspace(0.0, 1.0, 5, dtype=DTYPE)
     ys = jq.solve_fixed_steps(solver, diffrax.ODETerm(quadrotor), ts, _y0(), THRUST, substeps=25)
-    sol = diffrax.diffeqsolve(diffrax.ODETerm(quadrotor), solver, 0.0, 1.0, 0.01, _y0(), args=THRUST,
-                              saveat=diffrax.SaveAt(ts=ts), max_steps=200)
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(quadrotor),
+        solver,
+        0.0,
+        1.0,
+        0.01,
+        _y0(),
+        args=THRUST,
+        saveat=diffrax.SaveAt(ts=ts),
+        max_steps=200,
+    )
     for k in ("r", "v", "q", "w"):
         assert_close(ys[k], sol.ys[k], tol=1e-11 if X64 else 1e-4, what=k)
 
@@ -247,8 +311,7 @@ def test_the_fixed_step_driver_matches_diffeqsolve_on_a_user_model():
 )
 def test_bad_masks_raise_naming_quaternions(mask, error, match):
     with pytest.raises(error, match=match):
-        diffrax.diffeqsolve(diffrax.ODETerm(quadrotor), jq.RKMK4(quaternions=mask), 0.0, 0.1, 0.01, _y0(),
-                            args=THRUST)
+        diffrax.diffeqsolve(diffrax.ODETerm(quadrotor), jq.RKMK4(quaternions=mask), 0.0, 0.1, 0.01, _y0(), args=THRUST)
 
 
 def test_without_a_mask_a_non_rigid_body_state_gets_a_clear_error():

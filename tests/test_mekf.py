@@ -57,8 +57,14 @@ def synthetic(seed, runs, n, missing=0.0):
     x0 = np.einsum("ij,rj->ri", np.linalg.cholesky(P0), rng.normal(size=(runs, 6)))
     # The prior is the truth displaced by -x0: q_true = q0 Exp(dtheta0), bias_true = bias0 + dbias0.
     q0 = from_scipy((Rotation.from_quat(to_scipy(q_true[0])) * Rotation.from_rotvec(-x0[:, :3])).as_quat())
-    return dict(q_true=np.stack(q_true, 1), b_true=np.stack(b_true, 1), gyro=np.stack(gyro, 1), body=body,
-                q0=q0, bias0=np.stack(b_true, 1)[:, 0] - x0[:, 3:])
+    return dict(
+        q_true=np.stack(q_true, 1),
+        b_true=np.stack(b_true, 1),
+        gyro=np.stack(gyro, 1),
+        body=body,
+        q0=q0,
+        bias0=np.stack(b_true, 1)[:, 0] - x0[:, 3:],
+    )
 
 
 def run(data, **noise):
@@ -202,9 +208,20 @@ def test_init_predict_update_compose_to_the_runner_and_broadcast():
         assert np.allclose(stats.nis, result.nis[:, k], rtol=1e-6 if X64 else 1e-3)
     assert result.q.shape == (2, 4, 4) and result.P.shape == (2, 4, 6, 6) and result.q.dtype == DTYPE
     # vmap over runs equals the broadcast call; per-sensor noise as an (m,) array.
-    one = jax.vmap(lambda q0, b0, g, vb: jq.mekf(q0, b0, P0.astype(DTYPE), DT, g, vb, jnp.asarray(REF, DTYPE)[None],
-                                                 vector_noise=jnp.asarray([SIG, SIG], DTYPE), gyro_noise=SV,
-                                                 bias_noise=SU))
+    one = jax.vmap(
+        lambda q0, b0, g, vb: jq.mekf(
+            q0,
+            b0,
+            P0.astype(DTYPE),
+            DT,
+            g,
+            vb,
+            jnp.asarray(REF, DTYPE)[None],
+            vector_noise=jnp.asarray([SIG, SIG], DTYPE),
+            gyro_noise=SV,
+            bias_noise=SU,
+        )
+    )
     out = one(*(jnp.asarray(data[k], DTYPE) for k in ("q0", "bias0", "gyro", "body")))
     assert np.allclose(out.q, result.q, atol=1e-12 if X64 else 1e-6)
 

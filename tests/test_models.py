@@ -16,16 +16,19 @@ from helpers import DTYPE, NP_DTYPE, X64, assert_close, seeds
 
 TOL = 1e-12 if X64 else 2e-5
 N = 16  # the fixed batch every hypothesis example draws, so each jitted function compiles once
-AXES = np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [1.0, 1.0, 1.0]]) / np.array([[1], [1], [1], [3 ** 0.5]])
+AXES = np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [1.0, 1.0, 1.0]]) / np.array([[1], [1], [1], [3**0.5]])
 J = np.array([[10.0, 0.3, -0.2], [0.3, 8.0, 0.1], [-0.2, 0.1, 6.0]])
 
 
 def _np_rotation(q):
     a, b, c, d = q / np.linalg.norm(q)
-    return np.array([
-        [a * a + b * b - c * c - d * d, 2 * (b * c - a * d), 2 * (b * d + a * c)],
-        [2 * (b * c + a * d), a * a - b * b + c * c - d * d, 2 * (c * d - a * b)],
-        [2 * (b * d - a * c), 2 * (c * d + a * b), a * a - b * b - c * c + d * d]])
+    return np.array(
+        [
+            [a * a + b * b - c * c - d * d, 2 * (b * c - a * d), 2 * (b * d + a * c)],
+            [2 * (b * c + a * d), a * a - b * b + c * c - d * d, 2 * (c * d - a * b)],
+            [2 * (b * d - a * c), 2 * (c * d + a * b), a * a - b * b - c * c + d * d],
+        ]
+    )
 
 
 def _np_qdot(q, w):
@@ -107,8 +110,13 @@ def _energy_rate(y, args):
 
 
 def test_wheel_limits_clip_torque_and_stop_at_the_momentum_limit():
-    craft = jq.ReactionWheelSpacecraft(jnp.asarray(J, DTYPE), jnp.asarray(AXES, DTYPE), _wheels,
-                                       wheel_torque_limit=0.1, wheel_momentum_limit=jnp.asarray([1.0, 1, 1, 2], DTYPE))
+    craft = jq.ReactionWheelSpacecraft(
+        jnp.asarray(J, DTYPE),
+        jnp.asarray(AXES, DTYPE),
+        _wheels,
+        wheel_torque_limit=0.1,
+        wheel_momentum_limit=jnp.asarray([1.0, 1, 1, 2], DTYPE),
+    )
     u = jnp.asarray([0.5, -0.5, 0.05, 0.3], DTYPE)
     h = jnp.asarray([1.0, 1.0, -1.5, 0.5], DTYPE)
     # wheel 0 at its limit and pushed further: stopped; wheel 1 at its limit, pushed back: clipped
@@ -124,30 +132,57 @@ def test_gradients_in_state_and_parameters():
     """check_grads (both modes, order 1) of both fields in the state and in the parameters,
     at the identity and at a 180-degree attitude."""
     for q in ([1.0, 0, 0, 0], [0.0, 0, 1, 0]):
-        y = {"r": jnp.zeros(3), "v": jnp.asarray([0.1, 0.2, 0.3]), "q": jnp.asarray(q), "w": jnp.asarray([1.0, -2, .5])}
+        y = {
+            "r": jnp.zeros(3),
+            "v": jnp.asarray([0.1, 0.2, 0.3]),
+            "q": jnp.asarray(q),
+            "w": jnp.asarray([1.0, -2, 0.5]),
+        }
         args = {"thrust": jnp.asarray(14.0), "torque": jnp.asarray([0.01, 0.0, -0.02])}
-        check_grads(lambda y, m, args=args: jq.Quadrotor(m, jnp.diag(jnp.asarray([.02, .03, .05])), _thrust_torque)(0.0, y, args),
-                    (y, jnp.asarray(1.5)), order=1, modes=("fwd", "rev"))
+        check_grads(
+            lambda y, m, args=args: jq.Quadrotor(m, jnp.diag(jnp.asarray([0.02, 0.03, 0.05])), _thrust_torque)(
+                0.0, y, args
+            ),
+            (y, jnp.asarray(1.5)),
+            order=1,
+            modes=("fwd", "rev"),
+        )
         yc = {"q": jnp.asarray(q), "w": jnp.asarray([0.1, -0.2, 0.05]), "h": jnp.asarray([0.3, -0.1, 0.2, 0.4])}
         argc = {"u": jnp.asarray([0.01, 0.02, -0.01, 0.0]), "external": jnp.asarray([0.0, 0.001, 0.0])}
         # under jit: check_grads perturbs J off symmetry, which the eager value check would reject
-        check_grads(jax.jit(lambda y, j, argc=argc: jq.ReactionWheelSpacecraft(j, AXES, _wheels)(0.0, y, argc)),
-                    (yc, jnp.asarray(J)), order=1, modes=("fwd", "rev"))
+        check_grads(
+            jax.jit(lambda y, j, argc=argc: jq.ReactionWheelSpacecraft(j, AXES, _wheels)(0.0, y, argc)),
+            (yc, jnp.asarray(J)),
+            order=1,
+            modes=("fwd", "rev"),
+        )
 
 
-@pytest.mark.parametrize("build, error, match", [
-    (lambda: jq.Quadrotor(-1.0, np.eye(3), _thrust_torque), ValueError, "'mass'.*positive"),
-    (lambda: jq.Quadrotor(1.0, np.eye(2), _thrust_torque), ValueError, "'inertia'.*3, 3"),
-    (lambda: jq.Quadrotor(1.0, np.eye(3), "hover"), TypeError, "'control'"),
-    (lambda: jq.ReactionWheelSpacecraft(J, np.ones((4, 2)), _wheels), ValueError, r"'axes'.*\(n, 3\)"),
-    (lambda: jq.ReactionWheelSpacecraft(J, np.vstack([AXES[:3], np.zeros(3)]), _wheels), ValueError,
-     "'axes'.*nonzero"),
-    (lambda: jq.ReactionWheelSpacecraft(J, AXES, _wheels, wheel_torque_limit=[1.0, 2.0]), ValueError,
-     "'wheel_torque_limit'.*scalar or shaped"),
-    (lambda: jq.ReactionWheelSpacecraft(J, AXES, _wheels, wheel_momentum_limit=0.0), ValueError,
-     "'wheel_momentum_limit'.*positive"),
-    (lambda: jq.ReactionWheelSpacecraft(-J, AXES, _wheels), ValueError, "'inertia'"),
-])
+@pytest.mark.parametrize(
+    "build, error, match",
+    [
+        (lambda: jq.Quadrotor(-1.0, np.eye(3), _thrust_torque), ValueError, "'mass'.*positive"),
+        (lambda: jq.Quadrotor(1.0, np.eye(2), _thrust_torque), ValueError, "'inertia'.*3, 3"),
+        (lambda: jq.Quadrotor(1.0, np.eye(3), "hover"), TypeError, "'control'"),
+        (lambda: jq.ReactionWheelSpacecraft(J, np.ones((4, 2)), _wheels), ValueError, r"'axes'.*\(n, 3\)"),
+        (
+            lambda: jq.ReactionWheelSpacecraft(J, np.vstack([AXES[:3], np.zeros(3)]), _wheels),
+            ValueError,
+            "'axes'.*nonzero",
+        ),
+        (
+            lambda: jq.ReactionWheelSpacecraft(J, AXES, _wheels, wheel_torque_limit=[1.0, 2.0]),
+            ValueError,
+            "'wheel_torque_limit'.*scalar or shaped",
+        ),
+        (
+            lambda: jq.ReactionWheelSpacecraft(J, AXES, _wheels, wheel_momentum_limit=0.0),
+            ValueError,
+            "'wheel_momentum_limit'.*positive",
+        ),
+        (lambda: jq.ReactionWheelSpacecraft(-J, AXES, _wheels), ValueError, "'inertia'"),
+    ],
+)
 def test_bad_input_names_the_argument(build, error, match):
     with pytest.raises(error, match=match):
         build()

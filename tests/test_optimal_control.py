@@ -35,8 +35,14 @@ def _resimulate(inertia, q0, w0, controls, time, substeps):
 
     n = controls.shape[0]
     ts = jnp.linspace(0.0, time, n + 1)
-    qs, ws = jq.solve_fixed_steps(jq.RKMK4(), jq.BodyRateTerm(field), ts, (jnp.asarray(q0), jnp.asarray(w0)),
-                                  substeps=substeps, interval_args=controls)
+    qs, ws = jq.solve_fixed_steps(
+        jq.RKMK4(),
+        jq.BodyRateTerm(field),
+        ts,
+        (jnp.asarray(q0), jnp.asarray(w0)),
+        substeps=substeps,
+        interval_args=controls,
+    )
     return np.asarray(qs), np.asarray(ws)
 
 
@@ -65,9 +71,14 @@ def test_solve_shooting_matches_scipy_on_a_bounded_double_integrator():
             x = np.array([x[0] + h * x[1] + 0.5 * h * h * uk, x[1] + h * uk])
         return x
 
-    ref = minimize(lambda u: h * np.sum(u ** 2), np.zeros(n), method="SLSQP", bounds=[(-5, 5)] * n,
-                   constraints={"type": "eq", "fun": lambda u: final(u) - np.array([1.0, 0.0])},
-                   options={"ftol": 1e-14, "maxiter": 500})
+    ref = minimize(
+        lambda u: h * np.sum(u**2),
+        np.zeros(n),
+        method="SLSQP",
+        bounds=[(-5, 5)] * n,
+        constraints={"type": "eq", "fun": lambda u: final(u) - np.array([1.0, 0.0])},
+        options={"ftol": 1e-14, "maxiter": 500},
+    )
     assert ref.success
     np.testing.assert_allclose(np.asarray(sol.u[:, 0]), ref.x, atol=1e-6)  # measured 2e-9
     np.testing.assert_allclose(float(sol.objective), ref.fun, rtol=1e-9)
@@ -93,7 +104,7 @@ def test_minimum_energy_batch_approaches_the_closed_form_from_above(free_energy)
     r = free_energy
     assert np.all(np.asarray(r.converged)) and float(jnp.max(r.kkt_residual)) < 1e-8
     assert float(jnp.max(r.violation)) < 1e-10
-    exact = 12 * THETA ** 2 / 2.0 ** 3
+    exact = 12 * THETA**2 / 2.0**3
     rel = np.asarray(r.cost) / exact - 1
     assert np.all(rel > 0) and np.all(rel < 0.01), rel
     # The optimum is the eigenaxis rotation: the torque stays along the axis.
@@ -124,8 +135,16 @@ TORQUE = np.array([1.2, 1.2, 1.2])
 def constrained_energy():
     """90 degrees about z in 3 s: the body x axis would sweep through the Sun direction at 45
     degrees; keep it 20 degrees away, with rates <= 0.7 rad/s and |u_i| <= 1.2."""
-    return jq.minimum_energy_reorientation(np.eye(3), Q0, QZ, 3.0, torque_bound=TORQUE, rate_bound=RATE,
-                                           keep_out=[(np.array([1.0, 0.0, 0.0]), SUN, HALF)], intervals=N)
+    return jq.minimum_energy_reorientation(
+        np.eye(3),
+        Q0,
+        QZ,
+        3.0,
+        torque_bound=TORQUE,
+        rate_bound=RATE,
+        keep_out=[(np.array([1.0, 0.0, 0.0]), SUN, HALF)],
+        intervals=N,
+    )
 
 
 def test_every_constraint_holds_on_a_ten_times_finer_resimulation(constrained_energy):
@@ -162,7 +181,9 @@ def test_sun_avoidance_example(constrained_energy, tmp_path):
     rate = float(re.search(r"max rate ([\d.]+) rad/s", text).group(1))
     assert 20.0 - 1e-2 < sep < 20.0 + 1e-2, text  # the cone binds and holds
     assert rate <= 0.7 * (1 + 1e-4), text
-    assert float(re.search(r"energy ([\d.]+)", text).group(1)) == pytest.approx(float(constrained_energy.cost), rel=1e-9)
+    assert float(re.search(r"energy ([\d.]+)", text).group(1)) == pytest.approx(
+        float(constrained_energy.cost), rel=1e-9
+    )
     assert (tmp_path / "sun_avoidance.png").stat().st_size > 10_000
 
 
@@ -229,16 +250,19 @@ def test_a_rate_bound_through_the_binding_signature_costs_time(bilimoria_wie):
 # ------------------------------------------------------------------ bad input (no solve)
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    (dict(keep_out=[(np.ones(3), np.ones(3))]), "keep_out\\[0\\]"),
-    (dict(keep_out=[(np.ones(2), np.ones(3), 0.3)]), "keep_out\\[0\\].*shaped \\(3,\\)"),
-    (dict(keep_out=[(np.zeros(3), np.ones(3), 0.3)]), "keep_out\\[0\\].*non-zero"),
-    (dict(keep_out=[(np.ones(3), np.ones(3), 4.0)]), "half_angle"),
-    (dict(rate_bound=-1.0), "rate_bound"),
-    (dict(rate_bound=float("nan")), "rate_bound"),
-    (dict(torque_bound=np.array([1.0, 0.0, 1.0])), "torque_bound"),
-    (dict(intervals=1), "intervals"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(keep_out=[(np.ones(3), np.ones(3))]), "keep_out\\[0\\]"),
+        (dict(keep_out=[(np.ones(2), np.ones(3), 0.3)]), "keep_out\\[0\\].*shaped \\(3,\\)"),
+        (dict(keep_out=[(np.zeros(3), np.ones(3), 0.3)]), "keep_out\\[0\\].*non-zero"),
+        (dict(keep_out=[(np.ones(3), np.ones(3), 4.0)]), "half_angle"),
+        (dict(rate_bound=-1.0), "rate_bound"),
+        (dict(rate_bound=float("nan")), "rate_bound"),
+        (dict(torque_bound=np.array([1.0, 0.0, 1.0])), "torque_bound"),
+        (dict(intervals=1), "intervals"),
+    ],
+)
 def test_minimum_energy_bad_input_raises_naming_the_argument(kwargs, match):
     with pytest.raises(ValueError, match=match):
         jq.minimum_energy_reorientation(np.eye(3), Q0, QF, 2.0, **kwargs)

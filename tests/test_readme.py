@@ -34,7 +34,10 @@ def test_import_changes_no_global_setting():
     import subprocess
     import sys
 
-    code = "import jax; before = jax.config.jax_enable_x64; import jaxquat; assert jax.config.jax_enable_x64 == before; print(before)"
+    code = (
+        "import jax; before = jax.config.jax_enable_x64; import jaxquat; "
+        "assert jax.config.jax_enable_x64 == before; print(before)"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={"PATH": "/usr/bin:/bin"})
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "False"

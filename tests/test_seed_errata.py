@@ -137,9 +137,30 @@ def test_erratum_tasora_53_point_acceleration():
     def tri(a, b, c):
         return M(M(a, b), c)
 
-    printed_53 = tri(qdd, p, C(q)) + tri(q, pdd, C(q)) + tri(q, p, C(qdd)) + 2 * tri(qd, pd, C(q)) + 2 * tri(qd, pd, C(q)) + 2 * tri(q, pd, C(qd))
-    printed_table2 = tri(qdd, p, C(q)) + tri(q, pdd, C(q)) + tri(q, pd, C(qd)) + 2 * tri(qd, p, C(qd)) + 2 * tri(qd, pd, C(q)) + 2 * tri(q, pd, C(qd))
-    corrected = tri(qdd, p, C(q)) + tri(q, pdd, C(q)) + tri(q, p, C(qdd)) + 2 * tri(qd, pd, C(q)) + 2 * tri(qd, p, C(qd)) + 2 * tri(q, pd, C(qd))
+    printed_53 = (
+        tri(qdd, p, C(q))
+        + tri(q, pdd, C(q))
+        + tri(q, p, C(qdd))
+        + 2 * tri(qd, pd, C(q))
+        + 2 * tri(qd, pd, C(q))
+        + 2 * tri(q, pd, C(qd))
+    )
+    printed_table2 = (
+        tri(qdd, p, C(q))
+        + tri(q, pdd, C(q))
+        + tri(q, pd, C(qd))
+        + 2 * tri(qd, p, C(qd))
+        + 2 * tri(qd, pd, C(q))
+        + 2 * tri(q, pd, C(qd))
+    )
+    corrected = (
+        tri(qdd, p, C(q))
+        + tri(q, pdd, C(q))
+        + tri(q, p, C(qdd))
+        + 2 * tri(qd, pd, C(q))
+        + 2 * tri(qd, p, C(qd))
+        + 2 * tri(q, pd, C(qd))
+    )
     assert np.abs(printed_53 - truth).max() > 0.1
     assert np.abs(printed_table2 - truth).max() > 0.1
     assert np.allclose(corrected, truth, atol=1e-14)

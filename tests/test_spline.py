@@ -43,7 +43,12 @@ def test_agrees_with_scipy_rotation_spline(n, seed):
     scale = max(1.0, np.abs(ref(ts, 2)).max())
     assert_same_rotation(att, ref(ts).as_quat()[:, [3, 0, 1, 2]], tol=SCIPY_TOL)
     assert_close(np.asarray(rate) / scale, ref(ts, 1) / scale, tol=SCIPY_TOL, what="angular rate vs scipy")
-    assert_close(np.asarray(acc) / scale, ref(ts, 2) / scale, tol=SCIPY_TOL * (10 if not X64 else 1), what="angular acceleration vs scipy")
+    assert_close(
+        np.asarray(acc) / scale,
+        ref(ts, 2) / scale,
+        tol=SCIPY_TOL * (10 if not X64 else 1),
+        what="angular acceleration vs scipy",
+    )
 
 
 def test_passes_through_the_keys_and_ignores_their_signs():
@@ -135,7 +140,9 @@ def test_half_precision_builds_in_float32_and_returns_the_input_dtype(dtype):
     ts = np.linspace(times[0], times[-1], 9)
     for order in (0, 1, 2):
         out = jq.RotationSpline(jnp.asarray(times, dtype), jnp.asarray(q, dtype))(jnp.asarray(ts, dtype), order)
-        ref = jq.RotationSpline(jnp.asarray(times, jnp.float32), jnp.asarray(q, jnp.float32))(jnp.asarray(ts, jnp.float32), order)
+        ref = jq.RotationSpline(jnp.asarray(times, jnp.float32), jnp.asarray(q, jnp.float32))(
+            jnp.asarray(ts, jnp.float32), order
+        )
         assert out.dtype == dtype
         out, ref = np.asarray(out, np.float32), np.asarray(ref, np.float32)
         assert np.all(np.isfinite(out))

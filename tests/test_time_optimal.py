@@ -75,8 +75,9 @@ def test_single_axis_authority_gives_the_eigenaxis_bang_bang_time():
     integrator's bang-bang: T = 2 sqrt(theta I_x / b_x), exactly representable on an even
     number of intervals (the switch falls on the midpoint)."""
     theta, ix, bx = 1.0, 2.0, 0.5
-    r = jq.minimum_time_reorientation(np.diag([ix, 1.0, 1.0]), [bx, 1e-6, 1e-6], Q0,
-                                      [np.cos(theta / 2), np.sin(theta / 2), 0, 0], **FAST)
+    r = jq.minimum_time_reorientation(
+        np.diag([ix, 1.0, 1.0]), [bx, 1e-6, 1e-6], Q0, [np.cos(theta / 2), np.sin(theta / 2), 0, 0], **FAST
+    )
     assert float(r.violation) < 1e-6
     np.testing.assert_allclose(float(r.time), 2 * np.sqrt(theta * ix / bx), rtol=1e-5)
     u = np.asarray(r.controls)[:, 0] / bx
@@ -165,12 +166,26 @@ def test_time_optimal_reorientation_example(tmp_path):
     """The example as documented (fast variant), run in this process: its first solve has the
     fixtures' shapes and settings, so it reuses their compiled solver (in a subprocess it
     traced and compiled it again: 40 s)."""
-    text = run_example_in_process("examples/time_optimal_reorientation.py", "--intervals", "10", "--levels", "1",
-                                  "--starts", "4", "--outer", "6", "--inner", "80", "--no-progress", "--out", str(tmp_path))
+    text = run_example_in_process(
+        "examples/time_optimal_reorientation.py",
+        "--intervals",
+        "10",
+        "--levels",
+        "1",
+        "--starts",
+        "4",
+        "--outer",
+        "6",
+        "--inner",
+        "80",
+        "--no-progress",
+        "--out",
+        str(tmp_path),
+    )
     lines = text.strip().splitlines()
     assert lines[-1].startswith("minimum time: ") and lines[-2].startswith("terminal constraint violation: "), text
     time = float(lines[-1].split(": ")[1])
-    assert time < 2 * (3.14159265358979 ** 0.5) * 0.98, text  # beats the eigenaxis bang-bang time 2 sqrt(pi)
+    assert time < 2 * (3.14159265358979**0.5) * 0.98, text  # beats the eigenaxis bang-bang time 2 sqrt(pi)
     assert float(lines[-2].split(": ")[1]) < 1e-5, text
     saturated = int(re.search(r"^\s+10\s+\S+\s+\S+\s+(\d+) %$", text, re.M).group(1))
     assert saturated > 70, text  # bang-bang: most torque values at the bound

@@ -57,7 +57,9 @@ def test_angular_velocity_against_landau_with_scipy_ellipj():
     )
     # Landau's signs put w2 and w3 with the same sign for this branch (I1 w1' = (I2 - I3) w2 w3 < 0
     # while cn decreases): our propagator must reproduce them from the initial state alone.
-    _, w = _propagate(jnp.asarray(Q0, DTYPE), jnp.asarray(w_init, DTYPE), jnp.asarray([i1, i2, i3], DTYPE), jnp.asarray(ts, DTYPE))
+    _, w = _propagate(
+        jnp.asarray(Q0, DTYPE), jnp.asarray(w_init, DTYPE), jnp.asarray([i1, i2, i3], DTYPE), jnp.asarray(ts, DTYPE)
+    )
     assert_close(w, ref, tol=TOL, what="w(t) vs Landau")
     # Period 4K(m)/tau_rate.
     period = jq.polhode_period(jnp.asarray(w_init, DTYPE), jnp.asarray([i1, i2, i3], DTYPE))
@@ -71,7 +73,9 @@ def test_symmetric_top_closed_form():
     i1, i3 = 1.5, 2.5
     w0 = np.array([0.3, -0.7, 1.1])
     ts = np.linspace(-5.0, 30.0, 15)
-    q, w = _propagate(jnp.asarray(Q0, DTYPE), jnp.asarray(w0, DTYPE), jnp.asarray([i1, i1, i3], DTYPE), jnp.asarray(ts, DTYPE))
+    q, w = _propagate(
+        jnp.asarray(Q0, DTYPE), jnp.asarray(w0, DTYPE), jnp.asarray([i1, i1, i3], DTYPE), jnp.asarray(ts, DTYPE)
+    )
     om = (i3 - i1) * w0[2] / i1
     c, s = np.cos(om * ts), np.sin(om * ts)
     w_ref = np.stack([c * w0[0] - s * w0[1], s * w0[0] + c * w0[1], np.full_like(ts, w0[2])], -1)
@@ -97,14 +101,20 @@ def test_against_dop853_any_order_both_directions(seed):
 
 
 _ALL = (0, 1, 2, 3)
+
+
 # One compiled pair of Jacobians (d/d q0, omega0, moments, t; forward and reverse) and one compiled
 # set of central differences serve every derivative test in this module.
 def _columns(jacobians):
     return jnp.concatenate([j if j.ndim == 2 else j[:, None] for j in jacobians], axis=1)
 
 
-_jacobians = jax.jit(lambda q0, w, m, t: (_columns(jax.jacfwd(_flat, argnums=_ALL)(q0, w, m, t)),
-                                           _columns(jax.jacrev(_flat, argnums=_ALL)(q0, w, m, t))))
+_jacobians = jax.jit(
+    lambda q0, w, m, t: (
+        _columns(jax.jacfwd(_flat, argnums=_ALL)(q0, w, m, t)),
+        _columns(jax.jacrev(_flat, argnums=_ALL)(q0, w, m, t)),
+    )
+)
 
 
 @jax.jit
@@ -170,6 +180,7 @@ def test_near_a_spin_about_the_middle_axis_against_dop853(moments):
 def _rk4_state(w0, moments, t, n=20000):
     """Independent reference for derivatives: classical RK4 on the raw 7-state ODE in JAX
     (dt = t / n; halving dt changes its Jacobians by < 2e-11)."""
+
     def rhs(y):
         q, w = y[:4], y[4:]
         qd = 0.5 * jnp.concatenate([-(q[1:] @ w)[None], q[0] * w + jnp.cross(q[1:], w)])
@@ -224,7 +235,9 @@ def test_half_precision_computes_in_float32_and_returns_the_input_dtype(dtype):
     w0, moments, t = np.array([0.3, 1.0, 0.2]), np.array([1.0, 2.0, 3.0]), np.array([0.5, 3.0])
     inertia = np.array([[2.0, 0.1, 0.0], [0.1, 1.5, 0.0], [0.0, 0.0, 1.0]])
     calls = {
-        "euler_poinsot": lambda d: jq.euler_poinsot(jnp.asarray(Q0, d), jnp.asarray(w0, d), jnp.asarray(moments, d), jnp.asarray(t, d)),
+        "euler_poinsot": lambda d: jq.euler_poinsot(
+            jnp.asarray(Q0, d), jnp.asarray(w0, d), jnp.asarray(moments, d), jnp.asarray(t, d)
+        ),
         "polhode_period": lambda d: jq.polhode_period(jnp.asarray(w0, d), jnp.asarray(moments, d)),
         "principal_axes": lambda d: jq.principal_axes(jnp.asarray(inertia, d)),
         "ellipj": lambda d: jq.ellipj(jnp.asarray(t, d), jnp.asarray([0.5, 0.99], d)),
@@ -284,7 +297,9 @@ def test_dzhanibekov_flip_interval():
     moments = np.array([1.0, 2.0, 3.0])
     w0 = np.array([0.01, 2.0, 0.01])
     ts = np.linspace(0.0, 120.0, 24001)
-    _, w = _propagate(jnp.asarray(Q0, DTYPE), jnp.asarray(w0, DTYPE), jnp.asarray(moments, DTYPE), jnp.asarray(ts, DTYPE))
+    _, w = _propagate(
+        jnp.asarray(Q0, DTYPE), jnp.asarray(w0, DTYPE), jnp.asarray(moments, DTYPE), jnp.asarray(ts, DTYPE)
+    )
     w2 = np.asarray(w[:, 1], np.float64)
     idx = np.nonzero(np.sign(w2[1:]) != np.sign(w2[:-1]))[0]
     crossings = ts[idx] - w2[idx] * (ts[idx + 1] - ts[idx]) / (w2[idx + 1] - w2[idx])
@@ -301,8 +316,6 @@ def test_dzhanibekov_flip_interval():
     period = float(jq.polhode_period(jnp.asarray(w0, DTYPE), jnp.asarray(moments, DTYPE)))
     # 1e-11: the reference forms m by differences, the library by sums of positive terms.
     assert abs(period / (2 * flip) - 1) < (1e-11 if X64 else 1e-5)
-
-
 
 
 @pytest.mark.skipif(not X64, reason="finite differences need float64")
@@ -364,7 +377,9 @@ def test_full_tensor_through_principal_axes():
     w0 = np.array([0.4, -1.0, 0.3])
     moments, q_axes = jq.principal_axes(jnp.asarray(inertia))
     r = np.asarray(jq.to_matrix(q_axes))
-    q_p, w_p = jq.euler_poinsot(jq.multiply(jnp.asarray(Q0), q_axes), jnp.asarray(r.T @ w0), moments, jnp.asarray([4.0]))
+    q_p, w_p = jq.euler_poinsot(
+        jq.multiply(jnp.asarray(Q0), q_axes), jnp.asarray(r.T @ w0), moments, jnp.asarray([4.0])
+    )
     q_body = jq.multiply(q_p, jq.conjugate(q_axes))
     w_body = np.asarray(w_p) @ r.T
 

@@ -103,7 +103,9 @@ def test_torque_function_with_a_wrong_output_shape_is_named():
     def thruster(t, q, w, args):
         return jnp.zeros(q.shape)  # (..., 4): wrong
 
-    with pytest.raises(ValueError, match=r"argument 'thruster\(t, q, omega, args\)' must be a 3-vector array shaped \(\.\.\., 3\)"):
+    with pytest.raises(
+        ValueError, match=r"argument 'thruster\(t, q, omega, args\)' must be a 3-vector array shaped \(\.\.\., 3\)"
+    ):
         jq.as_body_torque(thruster)(0.0, jq.identity((), DTYPE), jnp.zeros(3, DTYPE), None)
     with pytest.raises(ValueError, match="argument 'frame'"):
         jq.as_body_torque(thruster, "inertial")

@@ -65,7 +65,8 @@ def test_init_predict_update_compose_to_the_runner_and_gradients_are_finite():
         state, _ = jq.ukf_update(state, jnp.asarray(data["body"][:, k], DTYPE), ref, vector_noise=SIG)
         assert np.allclose(state.q, result.q[:, k], atol=1e-12 if X64 else 1e-5)
     g = jax.grad(lambda s: -jnp.sum(jq.ukf(*_args(data), vector_noise=s, gyro_noise=SV, bias_noise=SU).log_likelihood))(
-        jnp.asarray(SIG, DTYPE))
+        jnp.asarray(SIG, DTYPE)
+    )
     assert np.isfinite(float(g))
 
 
@@ -75,9 +76,16 @@ def test_quaternion_update_equals_the_mekf_one():
     p = jnp.asarray(np.diag([1e-4, 2e-4, 3e-4, 1e-8, 1e-8, 1e-8]) + 1e-7 * np.eye(6)[::-1], DTYPE)  # correlations 0.1
     state = jq.mekf_init(jq.from_rotvec(jnp.asarray([0.3, 0.1, -0.2], DTYPE)), jnp.zeros(3, DTYPE), p)
     meas = jq.from_rotvec(jnp.asarray([0.31, 0.08, -0.21], DTYPE))
-    (u, su), (m, sm) = jq.ukf_update_quaternion(state, meas, noise=1e-2), jq.mekf_update_quaternion(state, meas, noise=1e-2)
+    (u, su), (m, sm) = (
+        jq.ukf_update_quaternion(state, meas, noise=1e-2),
+        jq.mekf_update_quaternion(state, meas, noise=1e-2),
+    )
     tol = 1e-12 if X64 else 1e-6
-    assert np.allclose(u.q, m.q, atol=tol) and np.allclose(u.P, m.P, atol=tol * 1e-3) and np.allclose(su.nis, sm.nis, rtol=1e-6 if X64 else 1e-3)
+    assert (
+        np.allclose(u.q, m.q, atol=tol)
+        and np.allclose(u.P, m.P, atol=tol * 1e-3)
+        and np.allclose(su.nis, sm.nis, rtol=1e-6 if X64 else 1e-3)
+    )
     same, stats = jq.ukf_update_quaternion(state, jnp.full(4, jnp.nan, DTYPE), noise=1e-2)
     assert np.array_equal(same.q, state.q) and float(stats.dof) == 0.0
 
