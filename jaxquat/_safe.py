@@ -44,9 +44,10 @@ def scalars(*xs: Array) -> tuple[Array, ...]:
     every component of the ``(..., 3)`` or ``(..., 4)`` array built from it, so the
     polynomial is evaluated three or four times per element. An optimisation
     barrier makes it one pass that stores the scalars and one cheap pass that
-    assembles the vectors.
+    assembles the vectors. On CPU only (measured there; ``_trig.on_cpu``): other platforms
+    get the values as they are and XLA's own fusion.
     """
-    return jax.lax.optimization_barrier(xs)
+    return _trig.on_cpu(lambda *a: jax.lax.optimization_barrier(a), lambda *a: a, *xs)
 
 
 def _horner(s: Array, coeffs: tuple[float, ...]) -> Array:

@@ -106,3 +106,35 @@ def test_jit_vmap_and_batch_shapes():
     np.testing.assert_allclose(c, jnp.cos(x), atol=4 * EPS)
     assert _atan2(x, x[::-1]).shape == (3, 4)
     assert _trig.sin(jnp.asarray(0.5, DTYPE)).shape == ()
+
+
+@pytest.mark.parametrize("cpu", [True, False], ids=["cpu", "other"])
+def test_the_polynomials_and_barriers_are_for_cpu_only(cpu, monkeypatch):
+    """With the CPU backend the rotation ops use these polynomials and the optimisation
+    barriers of ``_safe.scalars`` (no libm calls); with any other (the backend test patched,
+    so no GPU is needed) XLA's own sine, cosine and atan2 and no barrier, to the same values."""
+    import jaxquat as jq
+
+    monkeypatch.setattr(_trig, "_cpu", lambda: cpu)
+    q = jnp.asarray(np.random.default_rng(0).normal(size=(64, 4)), DTYPE)
+    r = jnp.asarray(np.random.default_rng(1).normal(size=(64, 3)), DTYPE)
+    # fresh lambdas: jit's trace cache is keyed by the function, and the other case traced it too
+    texts = [
+        jax.jit(lambda x, f=fn: f(x)).trace(x).lower().as_text() for fn, x in ((jq.to_rotvec, q), (jq.from_rotvec, r))
+    ]
+    transcendental = any(op in t for t in texts for op in ("stablehlo.atan2", "stablehlo.sine", "stablehlo.cosine"))
+    barrier = any("optimization_barrier" in t for t in texts)
+    assert transcendental == (not cpu) and barrier == cpu
+    # fresh traces again, against numpy's libm in float64
+    rv = jax.jit(lambda x: jq.to_rotvec(x))(q)
+    qq = jax.jit(lambda x: jq.from_rotvec(x))(r)
+    qn = np.asarray(q, np.float64) / np.linalg.norm(np.asarray(q, np.float64), axis=-1, keepdims=True)
+    qn = qn * np.sign(qn[:, :1])
+    vec = np.linalg.norm(qn[:, 1:], axis=-1, keepdims=True)
+    want_rv = qn[:, 1:] / vec * 2 * np.arctan2(vec, qn[:, :1])
+    rn = np.asarray(r, np.float64)
+    th = np.linalg.norm(rn, axis=-1, keepdims=True)
+    want_q = np.concatenate([np.cos(th / 2), np.sin(th / 2) * rn / th], -1)
+    tol = 1e-12 if DTYPE == jnp.float64 else 2e-6
+    np.testing.assert_allclose(np.asarray(rv), want_rv, atol=tol * 10)
+    np.testing.assert_allclose(np.asarray(qq), want_q, atol=tol)
