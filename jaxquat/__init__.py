@@ -79,6 +79,7 @@ from .inertia import (
     quaternion_inertia as quaternion_inertia,
     is_valid_inertia as is_valid_inertia,
     check_inertia as check_inertia,
+    principal_axes as principal_axes,
 )
 from .interior_point import (
     ShootingProblem as ShootingProblem,
@@ -179,7 +180,6 @@ from .time_optimal import (
 )
 from .torque_free import (
     euler_poinsot as euler_poinsot,
-    principal_axes as principal_axes,
     polhode_period as polhode_period,
 )
 from .torques import (
@@ -248,6 +248,7 @@ __all__ = [
     "quaternion_inertia",
     "is_valid_inertia",
     "check_inertia",
+    "principal_axes",
     "angular_momentum",
     "kinetic_energy",
     "angular_acceleration",
@@ -279,7 +280,6 @@ __all__ = [
     "elliprf",
     "elliprj",
     "euler_poinsot",
-    "principal_axes",
     "polhode_period",
     "RigidBody",
     "EulerParameterBody",

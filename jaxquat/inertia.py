@@ -1,4 +1,4 @@
-"""Inertia tensors: construction, frame change, Chou's 4x4 inertia, and validity checks.
+"""Inertia tensors: construction, frame change, principal axes, Chou's 4x4 inertia, and validity checks.
 
 An inertia tensor here is a full symmetric 3x3 matrix ``(..., 3, 3)`` about the
 centre of mass (principal moments are the special case ``diag(I1, I2, I3)``).
@@ -25,7 +25,7 @@ from jax import Array
 from jaxtyping import Bool, Float
 
 from . import _checks
-from .conversions import _to_matrix
+from .conversions import _from_matrix_shepperd, _to_matrix
 from .skew import _hat
 
 __all__ = [
@@ -35,6 +35,7 @@ __all__ = [
     "quaternion_inertia",
     "is_valid_inertia",
     "check_inertia",
+    "principal_axes",
 ]
 
 
@@ -198,3 +199,22 @@ def _solve(inertia: Array, b: Array) -> Array:
         jnp.stack([c00 * b0 + c01 * b1 + c02 * b2, c01 * b0 + c11 * b1 + c12 * b2, c02 * b0 + c12 * b1 + c22 * b2], -1)
         / det[..., None]
     )
+
+
+def principal_axes(inertia: Float[Array, "*batch 3 3"]) -> tuple[Float[Array, "*batch 3"], Float[Array, "*batch 4"]]:
+    """Principal moments (ascending) and the rotation from principal to body axes.
+
+    Returns ``(moments, q_axes)`` with ``inertia = R diag(moments) R^T`` and
+    ``R = to_matrix(q_axes)`` a proper rotation (det +1): a body-frame vector is
+    ``v_b = R v_p``, and a body whose attitude is ``q`` has attitude
+    ``q (x) q_axes`` with respect to its principal axes. Uses
+    ``jnp.linalg.eigh``, whose derivative is undefined where two moments are
+    equal (a symmetric top): differentiate with respect to the principal
+    moments there instead. Chou (1992) eq. (C1) is the inverse map.
+    """
+    inertia = _validated(inertia)
+    dtype = inertia.dtype
+    moments, vectors = jnp.linalg.eigh(inertia.astype(_checks.working_dtype(dtype)))
+    det = jnp.linalg.det(vectors)
+    vectors = vectors.at[..., :, 2].multiply(jnp.sign(det)[..., None])
+    return moments.astype(dtype), _from_matrix_shepperd(vectors).astype(dtype)

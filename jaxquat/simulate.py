@@ -22,7 +22,8 @@ from .lie_solvers import RKMK45, AbstractLieSolver, BodyRateTerm
 from .rigid_body import RigidBody
 from .skew import _matvec
 from .splitting import AbstractSplitting, EulerPoinsotSplit
-from .torque_free import _propagate, principal_axes
+from .inertia import principal_axes
+from .torque_free import _propagate
 
 __all__ = ["Simulation", "simulate"]
 

@@ -47,11 +47,11 @@ from jaxtyping import Float
 
 from . import _checks, _safe, _trig
 from .algebra import _conjugate, _multiply, _scalar_vector
-from .conversions import _from_matrix_shepperd, _from_rotvec
+from .conversions import _from_rotvec
 from .elliptic import _agm, _am, _amplitude, _incomplete, _quarter_period, _reduced_amplitude, _rf, _sn_cn_dn
 from .inertia import _validated
 
-__all__ = ["euler_poinsot", "principal_axes", "polhode_period"]
+__all__ = ["euler_poinsot", "polhode_period"]
 
 
 def _validated_moments(moments, name: str = "moments") -> Array:
@@ -59,25 +59,6 @@ def _validated_moments(moments, name: str = "moments") -> Array:
     if not _checks.is_traced(moments):
         _validated(jnp.vectorize(jnp.diag, signature="(3)->(3,3)")(moments), name)
     return moments
-
-
-def principal_axes(inertia: Float[Array, "*batch 3 3"]) -> tuple[Float[Array, "*batch 3"], Float[Array, "*batch 4"]]:
-    """Principal moments (ascending) and the rotation from principal to body axes.
-
-    Returns ``(moments, q_axes)`` with ``inertia = R diag(moments) R^T`` and
-    ``R = to_matrix(q_axes)`` a proper rotation (det +1): a body-frame vector is
-    ``v_b = R v_p``, and a body whose attitude is ``q`` has attitude
-    ``q (x) q_axes`` with respect to its principal axes. Uses
-    ``jnp.linalg.eigh``, whose derivative is undefined where two moments are
-    equal (a symmetric top): differentiate with respect to the principal
-    moments there instead. Chou (1992) eq. (C1) is the inverse map.
-    """
-    inertia = _validated(inertia)
-    dtype = inertia.dtype
-    moments, vectors = jnp.linalg.eigh(inertia.astype(_checks.working_dtype(dtype)))
-    det = jnp.linalg.det(vectors)
-    vectors = vectors.at[..., :, 2].multiply(jnp.sign(det)[..., None])
-    return moments.astype(dtype), _from_matrix_shepperd(vectors).astype(dtype)
 
 
 def _roles(moments: Array, omega: Array):
