@@ -110,8 +110,9 @@ def _residual(q, w, qf, wf):
 def _lbfgs(f, x0, iters: int, memory_size: int = 10, linesearch_steps: int = 20, initial_guess: str = "one"):
     """``iters`` optax L-BFGS steps (zoom line search) on ``f`` from ``x0`` (any pytree) in one
     ``lax.scan``; returns the final parameters and ``f`` at every iteration. The defaults are
-    ``optax.lbfgs()``'s (the examples use them, through ``examples/_lbfgs.py``); the
-    time-optimal solver keeps the previous step length as the line search's first guess."""
+    ``optax.lbfgs()``'s; the time-optimal solver keeps the previous step length as the line
+    search's first guess. Used only here (the examples take optimistix's L-BFGS, see
+    ``examples/_lbfgs.py``)."""
     linesearch = optax.scale_by_zoom_linesearch(
         max_linesearch_steps=linesearch_steps, initial_guess_strategy=initial_guess
     )
