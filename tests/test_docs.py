@@ -52,6 +52,23 @@ def test_imports_point_down_the_layer_map_of_architecture_md():
         assert not upward, f"{m}.py imports {upward}, which the map places above it"
 
 
+def test_the_module_map_lists_each_module_s_imports():
+    """The parenthesis closing each entry of docs/architecture.md's map is the set of jaxquat
+    modules that module imports (``_checks`` aside), so the map cannot drift from the code."""
+    text = (ROOT / "docs" / "architecture.md").read_text()
+    block = text.split("```\n")[1]
+    for entry in re.split(r"^(?=\w+\.py)", block, flags=re.M):
+        name = re.match(r"(\w+)\.py", entry)
+        if name is None:
+            continue
+        listed = re.search(r"\(([^()]*)\)\s*$", entry.rstrip()).group(1)
+        listed = set() if listed == "none" else {x.strip() for x in listed.split(",")}
+        src = (ROOT / "jaxquat" / f"{name.group(1)}.py").read_text()
+        imported = set(re.findall(r"^from \.(\w+) import", src, re.M))
+        imported |= {n.strip() for grp in re.findall(r"^from \. import ([\w, ]+)", src, re.M) for n in grp.split(",")}
+        assert listed == imported - {"_checks"}, f"{name.group(1)}.py: map lists {listed}, imports {imported}"
+
+
 def test_the_package_re_exports_every_module_name_by_name():
     """``jaxquat/__init__.py`` lists its re-exports explicitly (``name as name``, for type
     checkers); they must be exactly the modules' own ``__all__``, no name twice or missing."""
