@@ -368,7 +368,10 @@ class AbstractRKMK(AbstractLieSolver):
 
     tableau: ClassVar[diffrax.ButcherTableau]
     #: ``b_i(1/2)``, the tableau's continuous extension at the step's midpoint (None: none; the
-    #: dense output is then the cubic Hermite); see :func:`midpoint_weights`.
+    #: dense output is then the cubic Hermite); see :func:`midpoint_weights`. The subclasses
+    #: here give them as literals (``midpoint_weights`` at import cost 1.2 s of ``import
+    #: jaxquat``'s 1.8 s, in eager float64 compilations); ``tests/test_lie_solvers.py`` checks
+    #: them against ``midpoint_weights`` of diffrax's own solvers to the last bit.
     mid_weights: ClassVar[np.ndarray | None] = None
 
     @property
@@ -520,7 +523,17 @@ class RKMK45(AbstractRKMK, diffrax.AbstractAdaptiveSolver):
     (in the local coordinates) for ``PIDController``. 7 stages, 6 vector-field calls a step (FSAL)."""
 
     tableau: ClassVar = diffrax.Dopri5.tableau
-    mid_weights: ClassVar = midpoint_weights(diffrax.Dopri5)
+    mid_weights: ClassVar = np.array(
+        [
+            0.10013431883002388,
+            0.0,
+            0.39183217941842585,
+            -0.029824601765948172,
+            0.05893268337240795,
+            -0.04497888809104361,
+            0.023904308236133986,
+        ]
+    )
 
     def order(self, terms):
         return 5
@@ -532,7 +545,17 @@ class RKMKTsit5(AbstractRKMK, diffrax.AbstractAdaptiveSolver):
     work-precision figures in ``docs/integrators.md``."""
 
     tableau: ClassVar = diffrax.Tsit5.tableau
-    mid_weights: ClassVar = midpoint_weights(diffrax.Tsit5)
+    mid_weights: ClassVar = np.array(
+        [
+            0.10741235230096871,
+            0.01135625,
+            0.39560903056045305,
+            -0.34475214352593553,
+            1.3161853649581645,
+            -1.0170608542936508,
+            0.031249999999999993,
+        ]
+    )
 
     def order(self, terms):
         return 5
@@ -543,7 +566,24 @@ class RKMK8(AbstractRKMK, diffrax.AbstractAdaptiveSolver):
     14 stages, 13 calls a step (FSAL); for tolerances near float64 rounding."""
 
     tableau: ClassVar = diffrax.Dopri8.tableau
-    mid_weights: ClassVar = midpoint_weights(diffrax.Dopri8)
+    mid_weights: ClassVar = np.array(
+        [
+            0.04103130360739393,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.05100562801991382,
+            0.2388930677412202,
+            0.3096870143996103,
+            -0.2172325471755352,
+            0.07833405679331928,
+            -0.0018614369715579948,
+            0.007072844202678841,
+            0.00690847373200576,
+            -0.013838404349047373,
+        ]
+    )
 
     def order(self, terms):
         return 8
