@@ -1,4 +1,5 @@
-"""The notebooks in examples/notebooks/ execute top to bottom (their cells assert their claims).
+"""The notebooks in examples/notebooks/ execute top to bottom (their cells assert their claims),
+and each is its jupytext source (``NAME.py``, percent format) converted, cell for cell.
 
 They switch float64 on themselves, so they run in the float64 pass only, each in its own kernel."""
 
@@ -17,6 +18,17 @@ pytestmark = pytest.mark.skipif(not X64, reason="notebooks run in float64 by des
 
 def test_there_are_notebooks():
     assert {p.name for p in NOTEBOOKS} >= {"tour.ipynb", "slew.ipynb"}
+
+
+@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.name)
+def test_notebook_is_its_jupytext_source(path):
+    """Edit the ``.py``; ``jupytext --to ipynb examples/notebooks/NAME.py`` writes the notebook."""
+    nbformat = pytest.importorskip("nbformat")
+    jupytext = pytest.importorskip("jupytext")
+    source = jupytext.read(path.with_suffix(".py"))
+    notebook = nbformat.read(path, as_version=4)
+    assert [(c.cell_type, c.source) for c in notebook.cells] == [(c.cell_type, c.source) for c in source.cells]
+    assert all(not c.get("outputs") for c in notebook.cells if c.cell_type == "code")  # committed without outputs
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.name)
