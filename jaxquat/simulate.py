@@ -134,9 +134,7 @@ def simulate(
         return _exact_simulate(q0, omega0, inertia if shared_inertia is None else shared_inertia, ts, principal)
     substeps = None if (adjoint is not None or progress) else _scan_substeps(solver, ts_host, dt0, max_steps)
     adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
-    config = _Config(
-        solver, torque, torque_frame, principal, substeps, adaptive, exact, rtol, atol, max_steps, adjoint, progress
-    )
+    config = _Config(solver, torque, torque_frame, principal, substeps, exact, rtol, atol, max_steps, adjoint, progress)
     try:
         return _solve(config, q0, omega0, inertia, shared_inertia, ts, args, dt0)
     except TypeError as err:  # jvp of the compiled solve meets diffrax's custom_vjp adjoint
@@ -156,7 +154,6 @@ class _Config(NamedTuple):
     torque_frame: str
     principal: bool
     substeps: int | None
-    adaptive: bool
     exact: bool
     rtol: float
     atol: float
@@ -171,21 +168,15 @@ def _solve(cfg: _Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> 
     used to dispatch (and compile) every array operation around ``diffeqsolve`` or the scan on
     its own (the suite's ``test_integrators.py``: 1092 compilations of single operations, 31 s;
     repeated eager calls 0.1-0.8 s each, now microseconds after the first)."""
-    solver, torque, torque_frame, principal, substeps = (
-        cfg.solver,
-        cfg.torque,
-        cfg.torque_frame,
-        cfg.principal,
-        cfg.substeps,
-    )
-    adaptive = cfg.adaptive
-    if cfg.exact:
+    solver, torque, torque_frame, principal, substeps, exact, rtol, atol, max_steps, adjoint, progress = cfg
+    adaptive = _has_error_estimate(solver)
+    if exact:
         controller = diffrax.StepTo(ts)
     elif adaptive:
-        controller = diffrax.ClipStepSizeController(diffrax.PIDController(rtol=cfg.rtol, atol=cfg.atol), step_ts=ts)
+        controller = diffrax.ClipStepSizeController(diffrax.PIDController(rtol=rtol, atol=atol), step_ts=ts)
     else:
         controller = diffrax.ConstantStepSize()
-    meter = diffrax.TqdmProgressMeter() if cfg.progress else diffrax.NoProgressMeter()
+    meter = diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter()
     batch = q0.shape[:-1]
     per_body_field = bool(batch) and not adaptive and not isinstance(solver, AbstractSplitting)
 
@@ -225,8 +216,8 @@ def _solve(cfg: _Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> 
             args=args,
             saveat=diffrax.SaveAt(ts=ts),
             stepsize_controller=controller,
-            adjoint=cfg.adjoint,
-            max_steps=cfg.max_steps,
+            adjoint=adjoint,
+            max_steps=max_steps,
             progress_meter=meter,
         )
         qs, ws = sol.ys  # type: ignore[misc]  # diffrax types ys as Optional; SaveAt(ts=...) fills it
