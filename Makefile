@@ -10,16 +10,18 @@ BENCH_STAMP := $(VENV)/.installed-bench
 $(PY):
 	$(PYTHON) -m venv $(VENV)
 
+# --no-compile: Python compiles the modules it imports on first import; precompiling every
+# installed file took 27 s of the 40 s install on a 2-core CPU.
 $(STAMP): $(PY) pyproject.toml
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[test]"
+	$(PY) -m pip install --quiet --no-compile -e ".[test]"
 	touch $(STAMP)
 
 # The peers the benchmarks compare against (MuJoCo MJX among them): only `make bench` needs them.
 # brax without its dependencies (flax, orbax, ...): the benchmark loads only its jax-only math.py.
 $(BENCH_STAMP): $(STAMP)
-	$(PY) -m pip install --quiet -e ".[test,bench]"
-	$(PY) -m pip install --quiet --no-deps "brax==0.14.2"
+	$(PY) -m pip install --quiet --no-compile -e ".[test,bench]"
+	$(PY) -m pip install --quiet --no-compile --no-deps "brax==0.14.2"
 	touch $(BENCH_STAMP)
 
 demo: $(STAMP)

@@ -24,9 +24,8 @@ from jaxtyping import Float
 
 from . import _checks
 from .algebra import _multiply, _rotate
-from .dynamics import _euler_body
+from .dynamics import _euler_body, angular_momentum, kinetic_energy
 from .inertia import _validated
-from .skew import _matvec
 from .kinematics import _omega_from_qdot, _pure, _qddot_from_alpha
 from .torques import as_body_torque
 
@@ -84,8 +83,9 @@ class EulerParameterBody(_Body):
 def invariants(
     q: Float[Array, "*batch 4"], omega: Float[Array, "*batch 3"], inertia: Float[Array, "*batch 3 3"]
 ) -> dict[str, Array]:
-    """Quantities to monitor a run: ``energy`` (1/2 w.Iw), ``momentum_body`` (I w),
-    ``momentum_space`` (A I w), ``norm_error`` (``|q| - 1``). ``omega`` is body-frame.
+    """Quantities to monitor a run: ``energy`` (1/2 w.Iw, :func:`jaxquat.kinetic_energy`),
+    ``momentum_body`` (I w, :func:`jaxquat.angular_momentum`) and ``momentum_space`` (A I w, with
+    ``q`` normalised), and ``norm_error`` (``|q| - 1``). ``omega`` is body-frame.
 
     For torque-free motion the energy and ``momentum_space`` are conserved
     (``|momentum_body|`` too); ``norm_error`` is 0 for an exact unit-norm integrator.
@@ -94,12 +94,12 @@ def invariants(
     omega = _checks.vec3(omega, "omega")
     inertia = _checks.inertia(inertia)
     q, omega, inertia = _checks.broadcast_batch([q, omega, inertia], ["q", "omega", "inertia"], [1, 1, 2])
-    h = _matvec(inertia, omega)
-    nsq = jnp.sum(q * q, -1)
-    unit = q / jnp.sqrt(nsq)[..., None]
+    norm = jnp.sqrt(jnp.sum(q * q, -1))
+    unit = q / norm[..., None]
+    h = angular_momentum(unit, omega, inertia)  # body frame, as omega
     return {
-        "energy": 0.5 * jnp.sum(omega * h, -1),
+        "energy": kinetic_energy(unit, omega, inertia),
         "momentum_body": h,
         "momentum_space": _rotate(unit, h),
-        "norm_error": jnp.sqrt(nsq) - 1,
+        "norm_error": norm - 1,
     }

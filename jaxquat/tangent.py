@@ -23,10 +23,11 @@ are not parallel-transported between steps (the usual first-order choice).
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple
+from typing import Any
 
 import jax
 import jax.numpy as jnp
+import optax
 from jax import Array
 from jaxtyping import Float
 
@@ -70,14 +71,7 @@ def tangent_gradients(params: Any, grads: Any, mask: Any = None, frame: str = "b
     return jax.tree.map(lambda is_q, g, p: tangent_gradient(p, g, frame) if is_q else g, m, grads, params)
 
 
-class TangentOptimizer(NamedTuple):
-    """An optax-style transformation: ``init(params)``, ``update(grads, state, params)``."""
-
-    init: Callable[[Any], Any]
-    update: Callable[..., tuple[Any, Any]]
-
-
-def tangent_optimizer(base: Any, mask: Any = None, frame: str = "body") -> TangentOptimizer:
+def tangent_optimizer(base: Any, mask: Any = None, frame: str = "body") -> optax.GradientTransformation:
     """Wrap an optax ``GradientTransformation`` to optimise quaternion leaves in the tangent space.
 
     ``mask``: ``None`` (every leaf of the parameter pytree is a quaternion array
@@ -85,7 +79,8 @@ def tangent_optimizer(base: Any, mask: Any = None, frame: str = "body") -> Tange
     function ``params -> that pytree`` (as in ``optax.masked``). ``update`` takes
     Euclidean gradients and returns updates that are 3-vectors on quaternion
     leaves (to be applied with :func:`apply_tangent_updates`) and ordinary updates
-    elsewhere.
+    elsewhere. Returns an ``optax.GradientTransformation`` whose ``update`` needs ``params``
+    (the tangent space is that of the current quaternions); without them it raises.
     """
     frame = _checks.frame(frame)
     if not (hasattr(base, "init") and hasattr(base, "update")):
@@ -98,10 +93,12 @@ def tangent_optimizer(base: Any, mask: Any = None, frame: str = "body") -> Tange
     def init(params):
         return base.init(tangent_params(params))
 
-    def update(grads, state, params):
+    def update(grads, state, params=None):
+        if params is None:
+            raise ValueError("tangent_optimizer's update needs 'params' (the quaternions the gradients are taken at)")
         return base.update(tangent_gradients(params, grads, mask, frame), state, tangent_params(params))
 
-    return TangentOptimizer(init, update)
+    return optax.GradientTransformation(init, update)
 
 
 def apply_tangent_updates(params: Any, updates: Any, mask: Any = None, frame: str = "body") -> Any:

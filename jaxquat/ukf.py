@@ -41,6 +41,7 @@ from .mekf import (
     FilterState,
     FilterUpdate,
     _apply_update,
+    _vectorized,
     _innovate,
     _masked,
     _predict_args,
@@ -137,8 +138,7 @@ def ukf_predict(
     Same arguments and noise model as :func:`jaxquat.mekf_predict`; ``kappa`` sets the spread.
     """
     args = _predict_args(state, gyro, dt, gyro_noise, bias_noise)
-    fn = functools.partial(_predict, kappa=_kappa(kappa))
-    return FilterState(*jnp.vectorize(fn, signature=_PREDICT_SIGNATURE)(*args))
+    return FilterState(*_vectorized(_predict, _PREDICT_SIGNATURE, (("kappa", _kappa(kappa)),), *args))
 
 
 def ukf_update(
@@ -153,7 +153,7 @@ def ukf_update(
     predicted measurements (module docstring). Arguments, missing rows and the returned statistics
     as in :func:`jaxquat.mekf_update`."""
     args = _update_args(state, vectors_body, vectors_ref, vector_noise)
-    return _apply_update(functools.partial(_update_vectors, kappa=_kappa(kappa)), _UPDATE_SIGNATURE, args)
+    return _apply_update(_update_vectors, _UPDATE_SIGNATURE, args, (("kappa", _kappa(kappa)),))
 
 
 def ukf_update_quaternion(
@@ -164,7 +164,7 @@ def ukf_update_quaternion(
     in the error (``minus(q_i, q) = d_i``), so this equals :func:`jaxquat.mekf_update_quaternion`
     to rounding. A NaN in ``q_meas`` means no measurement."""
     args = _quaternion_args(state, q_meas, noise)
-    return _apply_update(functools.partial(_update_quaternion, kappa=_kappa(kappa)), _QUATERNION_SIGNATURE, args)
+    return _apply_update(_update_quaternion, _QUATERNION_SIGNATURE, args, (("kappa", _kappa(kappa)),))
 
 
 def ukf(

@@ -150,7 +150,10 @@ def test_tangent_optimizer_fits_a_rotation_and_keeps_unit_norm():
         return jnp.mean(jnp.sum((jq.rotate(p["q"], b) + p["bias"][None, :] - a) ** 2, -1))
 
     opt = jq.tangent_optimizer(optax.adam(optax.exponential_decay(0.1, 50, 0.5)), mask)
+    assert isinstance(opt, optax.GradientTransformation)  # composes with optax.chain and the rest
     state = opt.init(params)
+    with pytest.raises(ValueError, match="needs 'params'"):
+        opt.update(params, state)
 
     @jax.jit
     def step(p, s):
