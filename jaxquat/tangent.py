@@ -93,10 +93,10 @@ def tangent_optimizer(base: Any, mask: Any = None, frame: str = "body") -> optax
     def init(params):
         return base.init(tangent_params(params))
 
-    def update(grads, state, params=None):
+    def update(updates, state, params=None):  # updates: the Euclidean gradients
         if params is None:
             raise ValueError("tangent_optimizer's update needs 'params' (the quaternions the gradients are taken at)")
-        return base.update(tangent_gradients(params, grads, mask, frame), state, tangent_params(params))
+        return base.update(tangent_gradients(params, updates, mask, frame), state, tangent_params(params))
 
     return optax.GradientTransformation(init, update)
 
