@@ -155,9 +155,20 @@ def ellipj(u: Float[Array, "*batch"], m: Float[Array, "*batch"]) -> tuple[Array,
     Euler-Poinsot motion: Landau and Lifshitz, Mechanics, section 37.
     """
     (u, m), dtype = _broadcast((u, m), ("u", "m"))
-    out = _jacobi(u, m, 1 - m)
-    sn, cn, dn, ph = (jnp.where(m > 1, jnp.nan, x).astype(dtype) for x in out)  # as scipy: NaN outside m <= 1
-    return sn, cn, dn, ph
+    return tuple(x.astype(dtype) for x in _ellipj(u, m))
+
+
+# The public functions' kernels are compiled whole: called eagerly they ran operation by
+# operation, each compiled for every new shape (tests/test_elliptic.py, float32: 13.0 s, now
+# 7.3 s). Inside a user's jit they inline.
+@jax.jit
+def _ellipj(u: Array, m: Array) -> tuple[Array, ...]:
+    return tuple(jnp.where(m > 1, jnp.nan, x) for x in _jacobi(u, m, 1 - m))  # as scipy: NaN outside m <= 1
+
+
+@jax.jit
+def _ellipk(m: Array) -> Array:
+    return jnp.where(m > 1, jnp.nan, _quarter_period(m, 1 - m))
 
 
 def ellipk(m: Float[Array, "*batch"]) -> Array:
@@ -169,7 +180,7 @@ def ellipk(m: Float[Array, "*batch"]) -> Array:
     :func:`scipy.special.ellipk`.
     """
     (m,), dtype = _broadcast((m,), ("m",))
-    return jnp.where(m > 1, jnp.nan, _quarter_period(m, 1 - m)).astype(dtype)
+    return _ellipk(m).astype(dtype)
 
 
 def _duplicate(x: Array, y: Array, z: Array) -> tuple[Array, Array, Array, Array]:
@@ -236,7 +247,7 @@ def elliprf(x: Float[Array, "*batch"], y: Float[Array, "*batch"], z: Float[Array
     1 - m sin^2 phi, 1)`` for ``|phi| <= pi/2``. As :func:`scipy.special.elliprf`.
     """
     args, dtype = _broadcast((x, y, z), ("x", "y", "z"))
-    return _rf(*args).astype(dtype)
+    return _compiled_rf(*args).astype(dtype)
 
 
 def elliprj(
@@ -250,7 +261,10 @@ def elliprj(
     :func:`scipy.special.elliprj` for ``p > 0``.
     """
     args, dtype = _broadcast((x, y, z, p), ("x", "y", "z", "p"))
-    return _rj(*args).astype(dtype)
+    return _compiled_rj(*args).astype(dtype)
+
+
+_compiled_rf, _compiled_rj = jax.jit(_rf), jax.jit(_rj)
 
 
 def _reduced_amplitude(sn: Array, cn: Array) -> tuple[Array, Array, Array]:
