@@ -11,7 +11,8 @@ rounding, on which no assertion may depend. ``--xla_backend_optimization_level=0
 would have saved more (the float64 pass 6m35 instead of 11m02) but together with this flag it
 computed wrong float32 results (| |q| - 1 | up to 1.5e-5 in 637 of 10^4 closed-form torque-free
 states, against 2.1e-7 with either flag alone), so it is not used. Set
-``JAXQUAT_TEST_XLA_DEFAULTS=1`` to run the suite with XLA's default flags (it passes either way).
+``JAXQUAT_TEST_XLA_DEFAULTS=1`` to run the suite with XLA's default flags (the whole suite passed
+with them before the flag was set).
 The flag is appended to any ``XLA_FLAGS`` already set, before JAX creates its CPU backend, and
 the example and notebook subprocesses inherit it.
 """
