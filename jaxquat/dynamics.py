@@ -108,7 +108,12 @@ def kinetic_energy(
     frame = _checks.frame(frame)
     q, omega, inertia = _args(q, {"omega": omega}, inertia)
     w = _to_body(q, omega, frame)
-    return 0.5 * _safe.dot(w, _matvec(inertia, w))
+    return _kinetic_energy(w, _matvec(inertia, w))
+
+
+def _kinetic_energy(w: Array, h: Array) -> Array:
+    """``1/2 w . h`` from the body rate and the body angular momentum ``h = I w``."""
+    return 0.5 * _safe.dot(w, h)
 
 
 def angular_acceleration(

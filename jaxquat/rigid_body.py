@@ -24,8 +24,9 @@ from jaxtyping import Float
 
 from . import _checks
 from .algebra import _multiply, _rotate
-from .dynamics import _euler_body, angular_momentum, kinetic_energy
+from .dynamics import _euler_body, _kinetic_energy
 from .inertia import _validated
+from .skew import _matvec
 from .kinematics import _omega_from_qdot, _pure, _qddot_from_alpha
 from .torques import as_body_torque
 
@@ -83,23 +84,22 @@ class EulerParameterBody(_Body):
 def invariants(
     q: Float[Array, "*batch 4"], omega: Float[Array, "*batch 3"], inertia: Float[Array, "*batch 3 3"]
 ) -> dict[str, Array]:
-    """Quantities to monitor a run: ``energy`` (1/2 w.Iw, :func:`jaxquat.kinetic_energy`),
-    ``momentum_body`` (I w, :func:`jaxquat.angular_momentum`) and ``momentum_space`` (A I w, with
-    ``q`` normalised), and ``norm_error`` (``|q| - 1``). ``omega`` is body-frame.
+    """Quantities to monitor a run: ``energy`` (1/2 w.Iw, as :func:`jaxquat.kinetic_energy`),
+    ``momentum_body`` (I w, as :func:`jaxquat.angular_momentum`), ``momentum_space`` (A I w, with
+    ``q`` normalised) and ``norm_error`` (``|q| - 1``). ``omega`` is body-frame.
 
     For torque-free motion the energy and ``momentum_space`` are conserved
     (``|momentum_body|`` too); ``norm_error`` is 0 for an exact unit-norm integrator.
     """
     q = _checks.quat(q)
     omega = _checks.vec3(omega, "omega")
-    inertia = _checks.inertia(inertia)
+    inertia = _validated(inertia)
     q, omega, inertia = _checks.broadcast_batch([q, omega, inertia], ["q", "omega", "inertia"], [1, 1, 2])
     norm = jnp.sqrt(jnp.sum(q * q, -1))
-    unit = q / norm[..., None]
-    h = angular_momentum(unit, omega, inertia)  # body frame, as omega
+    h = _matvec(inertia, omega)  # body frame, as omega
     return {
-        "energy": kinetic_energy(unit, omega, inertia),
+        "energy": _kinetic_energy(omega, h),
         "momentum_body": h,
-        "momentum_space": _rotate(unit, h),
+        "momentum_space": _rotate(q / norm[..., None], h),
         "norm_error": norm - 1,
     }
