@@ -1,4 +1,8 @@
-"""Minimum-time reorientation of a rigid body under per-axis torque bounds, by gradients.
+"""Minimum-time reorientation of a rigid body under per-axis torque bounds.
+
+:func:`minimum_time_reorientation` solves it by direct multiple shooting and the interior-point
+method of :mod:`jaxquat.optimal_control` (the default), or by the single-shooting solver of this
+module (``method="single_shooting"``), described here.
 
 Problem: find the final time ``T`` and a body torque ``u(t)`` with ``|u_i| <= b_i`` that
 take ``(q0, w0)`` to ``(qf, wf)`` in least time, for the rigid body
@@ -28,7 +32,10 @@ rounding into differences of 1e-3 in the time. A start converged to its KKT poin
 longer depends on its path: the suite's 180-degree problem gives the same time to 2e-16
 under XLA's AVX-512, AVX2 and SSE4.2 code. Where the discrete problem has several local
 optima close together (the suite's asymmetric 10-interval problem has KKT points at
-1.918171, 1.918318 and 1.918498), which one a start reaches can still depend on the ISA.
+1.918171, 1.918318 and 1.918498), which one a start reaches can still depend on the ISA:
+FAST settings (10 intervals, 4 starts) gave 1.9181217122804963 under AVX-512 and
+1.9186738802162087 under AVX2. Hence the interior-point default, whose starts all converge by
+Newton steps (the same problem: 1.918121717830074 under every ISA and thread count tried).
 
 Starts: start 0 is the eigenaxis rest-to-rest bang-bang profile (the rotation
 about the fixed axis of ``q0* qf``), scaled to 80 % of the bound and perturbed, since
@@ -55,7 +62,14 @@ from jaxtyping import Float
 from . import _checks, _trig
 from .inertia import _validated
 from .lie import minus
-from .optimal_control import ConstrainedReorientation, constrained_minimum_time, held_torque_states
+from .optimal_control import (
+    ConstrainedReorientation,
+    _check_grid,
+    _check_resolution,
+    _check_starts,
+    constrained_minimum_time,
+    held_torque_states,
+)
 
 __all__ = ["Reorientation", "minimum_time_reorientation"]
 
@@ -142,27 +156,6 @@ def _reference_time(inertia, bound, theta, axis, w0, wf) -> float:
     need = np.abs(np.asarray(inertia, np.float64) @ axis)
     accel = float(np.min(np.where(need > 1e-12, np.asarray(bound, np.float64) / np.maximum(need, 1e-300), np.inf)))
     return 2.0 * math.sqrt(theta / accel) + float(np.linalg.norm(np.asarray(wf) - np.asarray(w0))) / accel
-
-
-_MAX_STEP_ANGLE = 0.5  # rad the body may turn in one RKMK4 step of the reference profile
-
-
-def _check_resolution(t_ref, theta, w0, wf, intervals: int, substeps: int) -> None:
-    """Raise before any work when the grid cannot resolve the motion: the body would turn by
-    more than ``_MAX_STEP_ANGLE`` in one integration step at the reference time (the larger of
-    the boundary rates and the eigenaxis profile's peak rate ``2 theta / T_ref``). Such a
-    problem used to run its whole budget (about 40 s at 10 intervals) and return NaN or fail."""
-    peak = 2 * theta / t_ref if t_ref > 0 else 0.0  # t_ref = 0: already there, at rest
-    rate = max(float(np.linalg.norm(np.asarray(w0))), float(np.linalg.norm(np.asarray(wf))), peak)
-    h = t_ref / (intervals * substeps)
-    if rate * h > _MAX_STEP_ANGLE:
-        need = int(np.ceil(rate * t_ref / _MAX_STEP_ANGLE))
-        raise ValueError(
-            f"minimum_time_reorientation: the grid cannot resolve this motion: at rate {rate:.3g} rad/s the body "
-            f"turns {rate * h:.3g} rad per integration step (reference time {t_ref:.4g}, intervals * substeps = "
-            f"{intervals * substeps}); need intervals * substeps >= {need} (a step of at most {_MAX_STEP_ANGLE} rad), "
-            "or boundary rates ('omega0', 'omegaf') the torque bound can change within a shorter time"
-        )
 
 
 def _initial_controls(key, starts, intervals, bound, axis, init):
@@ -310,67 +303,72 @@ def minimum_time_reorientation(
     *,
     intervals: int = 30,
     substeps: int = 4,
-    starts: int = 16,
+    starts: int = 8,
     seed: int = 0,
-    init: Reorientation | None = None,
-    outer: int = 10,
-    inner: int = 200,
-    mu: float = 10.0,
-    tol: float = 1e-6,
-    refine: int = 20,
-    progress: bool = False,
+    init: Reorientation | ConstrainedReorientation | None = None,
+    outer: int | None = None,
+    inner: int | None = None,
+    mu: float | None = None,
+    tol: float | None = None,
+    refine: int | None = None,
+    progress: bool | None = None,
     throw: bool = True,
     rate_bound: float | None = None,
     keep_out: Sequence = (),
-    method: str = "auto",
+    method: str = "interior_point",
 ) -> Reorientation | ConstrainedReorientation:
     """Shortest time ``T`` and bounded body torque taking ``(q0, omega0)`` to ``(qf, omegaf)``.
 
     Minimises ``T`` subject to ``q' = 1/2 q (0, w)``, ``I w' = u - w x I w``
     (body frame, [S] eqs. (16), (19)), ``|u_i(t)| <= torque_bound[i]``,
     ``q(T) = +-qf`` and ``w(T) = omegaf``; rates default to rest. ``q0`` and ``qf``
-    are normalised. Method (see the module docstring): piecewise-constant torque
-    ``b sin(p)`` on ``intervals`` pieces of ``substeps`` RKMK4 steps each, augmented
-    Lagrangian with ``outer`` multiplier updates of ``inner`` L-BFGS iterations,
-    ``starts`` starts in parallel (start 0 the perturbed eigenaxis profile, the
-    others random with ``seed``), or ``init``: a previous :class:`Reorientation` to
-    warm-start from (e.g. to refine ``intervals``); then ``refine`` Newton-KKT steps
-    per start. Returns the shortest converged start with violation ``<= tol`` (or
-    the shortest feasible one). If no start meets ``tol``, raises ``RuntimeError``
-    naming the least violation (as optimistix does with ``throw=True``: an infeasible
-    answer is not returned as a plausible time); with ``throw=False`` the least
-    violating start is returned instead, for inspection. Before any solve, a grid too
-    coarse for the motion raises ``ValueError`` (the body would turn more than 0.5 rad per
-    integration step at the reference time, e.g. ``omega0 = (100, 0, 0)`` with unit torque;
-    the message gives the ``intervals * substeps`` needed). With no feasible start, the outer
-    loop stops early once the least violation stalls (falls by less than 10 % in two outer
-    iterations while above ``100 tol``) or reaches rounding level (``10 eps`` of the dtype,
-    so with a ``tol`` below it). ``progress=True``
-    shows a tqdm bar with the time and violation. Runs eagerly (the inner solves
-    are jitted); use float64 (``jax_enable_x64``) for tight terminal conditions.
+    are normalised. The torque is held constant on ``intervals`` equal pieces, each integrated
+    by ``substeps`` RKMK4 steps. Use float64 (``jax_enable_x64``).
+
+    ``method="interior_point"`` (the default): direct multiple shooting solved by the
+    interior-point method of :func:`jaxquat.constrained_minimum_time`, ``starts`` starts side by
+    side (``seed``; ``init`` an earlier result to warm-start from, e.g. to refine ``intervals``),
+    each converged to a KKT error of 1e-9; returns a :class:`jaxquat.ConstrainedReorientation`
+    (``time``, ``ts``, ``q``, ``omega``, ``torque``, ``controls``, ``violation``, ``switching``,
+    ``start_costs``, ...). Also takes ``rate_bound`` (``|w_i| <= rate_bound``) and ``keep_out``
+    (``(body_axis (3,), inertial_direction (3,), half_angle_rad)`` triples). Its result does not
+    depend on the CPU's vector instructions or thread count (measured: the same time to the last
+    digit or to 1e-15 under XLA's AVX-512, AVX2 and SSE4.2 code, 1 to 4 host devices, one core).
+
+    ``method="single_shooting"``: this module's solver (module docstring), torque bounds only:
+    torque ``b sin(p)``, augmented Lagrangian with ``outer`` multiplier updates of ``inner``
+    L-BFGS iterations, ``starts`` starts in parallel (start 0 the perturbed eigenaxis profile,
+    the others random with ``seed``) or ``init`` (a previous result), then ``refine``
+    Newton-KKT steps per start. Returns the shortest converged start with violation ``<= tol``
+    (or the shortest feasible one) as a :class:`Reorientation`. Which local optimum its
+    fixed-budget L-BFGS phase reaches can depend on the CPU's rounding (the module docstring);
+    ``tol`` (1e-6), ``outer`` (10), ``inner`` (200), ``mu`` (10), ``refine`` (20) and ``progress``
+    apply to it only (given with the interior-point method they raise ``ValueError``). If no
+    start meets ``tol``, raises ``RuntimeError`` naming the least violation (as optimistix does
+    with ``throw=True``: an infeasible answer is not returned as a plausible time); with
+    ``throw=False`` the least violating start is returned instead, for inspection. Before any
+    solve, a grid too coarse for the motion raises ``ValueError`` (the body would turn more than
+    0.5 rad per integration step at the reference time, e.g. ``omega0 = (100, 0, 0)`` with unit
+    torque; the message gives the ``intervals * substeps`` needed). With no feasible start, the
+    outer loop stops early once the least violation stalls (falls by less than 10 % in two outer
+    iterations while above ``100 tol``) or reaches rounding level (``10 eps`` of the dtype, so
+    with a ``tol`` below it). ``progress=True`` shows a tqdm bar with the time and violation.
+    Runs eagerly (the inner solves are jitted).
+
     The discrete optimum approaches the continuous one from above as ``intervals``
     grows; compare two discretisations to see how far it has converged.
-
-    Constraints beyond the torque bound: ``rate_bound`` (``|w_i| <= rate_bound``) and
-    ``keep_out`` (``(body_axis (3,), inertial_direction (3,), half_angle_rad)`` triples) are
-    handled by direct multiple shooting with the interior-point method of
-    :func:`jaxquat.constrained_minimum_time` (``intervals``, ``substeps`` and ``throw`` carry
-    over; it converges to a KKT error of 1e-9 whatever ``tol``; ``starts``, ``seed``, ``init``,
-    ``outer``, ``inner``, ``mu``, ``refine`` and ``progress`` do not apply), which returns a
-    :class:`jaxquat.ConstrainedReorientation` with the same ``time``, ``ts``, ``q``, ``omega``,
-    ``torque``, ``controls`` and ``violation`` fields. ``method``: ``"auto"`` (that solver when a
-    rate bound or a cone is given, this module's otherwise), ``"interior_point"`` or
-    ``"single_shooting"``.
     """
-    if method not in ("auto", "interior_point", "single_shooting"):
-        raise ValueError(f"argument 'method' must be 'auto', 'interior_point' or 'single_shooting', got {method!r}")
-    constrained = rate_bound is not None or len(keep_out) > 0
-    if method == "single_shooting" and constrained:
-        raise ValueError(
-            "method='single_shooting' handles torque bounds only; rate_bound and keep_out need "
-            "method='interior_point' (or 'auto')"
-        )
-    if method == "interior_point" or (method == "auto" and constrained):
+    if method not in ("interior_point", "single_shooting"):
+        raise ValueError(f"argument 'method' must be 'interior_point' or 'single_shooting', got {method!r}")
+    single = dict(outer=outer, inner=inner, mu=mu, tol=tol, refine=refine, progress=progress)
+    if method == "interior_point":
+        given = [name for name, v in single.items() if v is not None]
+        if given:
+            raise ValueError(
+                f"argument(s) {', '.join(repr(n) for n in given)} apply to method='single_shooting' only "
+                "(the interior-point method converges every start to a KKT error of 1e-9; for its own "
+                "tol and max_iter call jaxquat.constrained_minimum_time)"
+            )
         return constrained_minimum_time(
             inertia,
             torque_bound,
@@ -383,6 +381,14 @@ def minimum_time_reorientation(
             intervals=intervals,
             substeps=substeps,
             throw=throw,
+            starts=starts,
+            seed=seed,
+            init=init,
+        )
+    if rate_bound is not None or len(keep_out) > 0:
+        raise ValueError(
+            "method='single_shooting' handles torque bounds only; rate_bound and keep_out need "
+            "method='interior_point' (the default)"
         )
     inertia = _validated(inertia)
     if inertia.shape != (3, 3):
@@ -407,14 +413,19 @@ def minimum_time_reorientation(
     for name, x in (("omega0", w0), ("omegaf", wf)):
         if not np.all(np.isfinite(np.asarray(x))):
             raise ValueError(f"argument '{name}' must be finite, got {np.asarray(x)}")
-    if intervals < 2 or substeps < 1 or starts < 1:
-        raise ValueError("need intervals >= 2, substeps >= 1 and starts >= 1")
+    _check_grid(intervals, substeps)
+    _check_starts(starts)
+    outer = 10 if outer is None else outer
+    inner = 200 if inner is None else inner
+    mu = 10.0 if mu is None else mu
+    tol = 1e-6 if tol is None else tol
+    refine = 20 if refine is None else refine
     q0 = q0 / jnp.linalg.norm(q0)
     qf = qf / jnp.linalg.norm(qf)
     inertia, bound, w0, wf = (jnp.asarray(x, dtype) for x in (inertia, bound, w0, wf))
     theta, axis = _eigenaxis(q0, qf)
     t_ref = float(init.time) if init is not None else _reference_time(inertia, bound, theta, axis, w0, wf)
-    _check_resolution(t_ref, theta, w0, wf, intervals, substeps)
+    _check_resolution(t_ref, q0, qf, w0, wf, intervals, substeps)
     p = _initial_controls(jax.random.PRNGKey(seed), starts, intervals, bound, axis, init)
 
     problem = _Problem(inertia, bound, q0, w0, qf, wf, jnp.asarray(t_ref, dtype))

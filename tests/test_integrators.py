@@ -556,4 +556,5 @@ def test_progress_without_tqdm_names_the_optional_dependency(monkeypatch):
             jnp.asarray([1.0, 0, 0, 0], DTYPE),
             jnp.asarray([0.0, 1.0, 0, 0], DTYPE),
             progress=True,
+            method="single_shooting",
         )

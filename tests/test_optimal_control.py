@@ -250,6 +250,15 @@ def test_a_rate_bound_through_the_binding_signature_costs_time(bilimoria_wie):
 # ------------------------------------------------------------------ bad input (no solve)
 
 
+def _batched_result():
+    """A stand-in for a batched result (only the shapes are read before any solve)."""
+    n = 4
+    return jq.ConstrainedReorientation(
+        *(np.zeros((2,) + shape) for shape in [(), (n + 1,), (n + 1, 4), (n + 1, 3), (n + 1, 3), (n, 3)]),
+        *(np.zeros(2) for _ in range(8)),
+    )
+
+
 @pytest.mark.parametrize(
     "kwargs, match",
     [
@@ -261,11 +270,20 @@ def test_a_rate_bound_through_the_binding_signature_costs_time(bilimoria_wie):
         (dict(rate_bound=float("nan")), "rate_bound"),
         (dict(torque_bound=np.array([1.0, 0.0, 1.0])), "torque_bound"),
         (dict(intervals=1), "intervals"),
+        (dict(starts=0), "'starts' must be an int >= 1"),
+        (dict(starts=2.0), "'starts' must be an int >= 1"),
+        (dict(init=_batched_result()), "'init' must be a single \\(unbatched\\) result"),
+        (dict(omega0=[100.0, 0.0, 0.0]), r"cannot resolve .* intervals \* substeps >= \d+"),
     ],
 )
 def test_minimum_energy_bad_input_raises_naming_the_argument(kwargs, match):
     with pytest.raises(ValueError, match=match):
         jq.minimum_energy_reorientation(np.eye(3), Q0, QF, 2.0, **kwargs)
+
+
+def test_init_that_is_not_a_result_raises_naming_it():
+    with pytest.raises(TypeError, match="'init' must be an earlier result"):
+        jq.minimum_energy_reorientation(np.eye(3), Q0, QF, 2.0, init=np.zeros(3))
 
 
 def test_bad_duration_method_and_shapes_raise():
