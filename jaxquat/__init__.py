@@ -144,6 +144,7 @@ from .optimal_control import (
     minimum_energy_reorientation as minimum_energy_reorientation,
     minimum_fuel_reorientation as minimum_fuel_reorientation,
     constrained_minimum_time as constrained_minimum_time,
+    optimal_reorientation as optimal_reorientation,
 )
 from .rigid_body import (
     RigidBody as RigidBody,
@@ -311,6 +312,7 @@ __all__ = [
     "ConstrainedReorientation",
     "minimum_energy_reorientation",
     "minimum_fuel_reorientation",
+    "optimal_reorientation",
     "constrained_minimum_time",
     "Reorientation",
     "minimum_time_reorientation",

@@ -8,8 +8,9 @@ interior-point method of :mod:`jaxquat.interior_point` with exact second derivat
 
 Constraints: per-axis torque bounds ``|u_i| <= b_i``; body-rate bounds ``|w_i| <= w_max``;
 keep-out cones (body axis ``a`` stays at least ``alpha`` from the inertial direction ``s``:
-``s . R(q) a <= cos(alpha)``, with ``R(q) a`` the inertial image of the body axis); rate and cone
-constraints hold at every integration step (every substep's end state), not only at the nodes.
+``s . R(q) a <= cos(alpha)``, with ``R(q) a`` the inertial image of the body axis) and keep-in
+cones (within ``alpha``: ``s . R(q) a >= cos(alpha)``, e.g. an antenna kept near the Earth); rate
+and cone constraints hold at every integration step (every substep's end state), not only at the nodes.
 Terminal conditions: ``vec(qf* q_N) = 0`` (so ``q_N = +-qf``) and ``w_N = omegaf``.
 
 Scaling (the method is not scale invariant; both Bilimoria-Wie's unit body and Betts' 5000
@@ -45,6 +46,7 @@ from .lie_solvers import RKMK4, BodyRateTerm
 
 __all__ = [
     "ConstrainedReorientation",
+    "optimal_reorientation",
     "minimum_energy_reorientation",
     "minimum_fuel_reorientation",
     "constrained_minimum_time",
@@ -96,17 +98,19 @@ class _Data(NamedTuple):
     w_ref: Array  # rate scale
     bound: Array  # (3,) torque bound (inf: none)
     rate_bound: Array  # (inf: none)
-    cones: Array  # (n, 7): body axis, inertial direction, cos(half angle)
+    cones: Array  # (n, 8): body axis, inertial direction, cos(half angle), +1 keep-out / -1 keep-in
+    weights: Array  # (3,) of the time, int |u|^2 dt and int |u|_1 dt in the cost
 
 
 class _Config(NamedTuple):
     intervals: int
     substeps: int
-    min_time: bool
+    min_time: bool  # a free final time, in the cost
     torque_bounded: bool
     rate_bounded: bool
     n_cones: int
-    fuel: bool = False  # objective int |u|_1 dt: controls (v, sigma) with |v_i| <= sigma_i <= 1
+    fuel: bool = False  # int |u|_1 dt in the cost: controls (v, sigma) with |v_i| <= sigma_i <= 1
+    energy: bool = False  # int |u|^2 dt in the cost
 
 
 def held_torque_states(inertia, q0, w0, time, u, substeps: int):
@@ -149,7 +153,8 @@ def _path(cfg: _Config, data: _Data, qs, ws, c, p, k):
     if cfg.n_cones:
         qn = qs / jnp.linalg.norm(qs, axis=-1, keepdims=True)
         axes = jax.vmap(lambda c: jax.vmap(lambda qq: _rotate(qq, c[:3]))(qn))(data.cones)  # (n, substeps, 3)
-        parts.append((jnp.einsum("csi,ci->cs", axes, data.cones[:, 3:6]) - data.cones[:, 6:7]).ravel())
+        cosines = jnp.einsum("csi,ci->cs", axes, data.cones[:, 3:6])
+        parts.append((data.cones[:, 7:8] * (cosines - data.cones[:, 6:7])).ravel())
     if cfg.min_time:
         # T >= T_ref / 20, in the first stage only (each copy would add its own barrier term).
         parts.append(jnp.reshape(jnp.where(k == 0, 0.05 - p[0], -1.0), (1,)))
@@ -158,10 +163,13 @@ def _path(cfg: _Config, data: _Data, qs, ws, c, p, k):
     return jnp.concatenate(parts)
 
 
-def _cost_scale(cfg: _Config, data: _Data):
-    """The running cost's unit (the NLP minimises cost / scale): ``T sum b_i`` for fuel,
-    ``T sum u_ref_i^2`` for energy."""
-    return data.duration * (jnp.sum(data.u_ref) if cfg.fuel else jnp.sum(data.u_ref**2))
+def _units(data: _Data) -> tuple[Array, Array]:
+    """The cost terms' units ``(T_ref, T_ref sum u_ref_i^2, T_ref sum u_ref_i)`` (time, energy,
+    fuel; ``T_ref`` the fixed time or the eigenaxis reference time) and the cost's unit
+    ``S = sum weight_j unit_j``: the NLP minimises ``cost / S``, each term in its unit (so a single
+    objective is its own unit, as the scaling of the variables is)."""
+    units = data.duration * jnp.stack([jnp.ones_like(data.duration), jnp.sum(data.u_ref**2), jnp.sum(data.u_ref)])
+    return units, jnp.sum(data.weights * units)
 
 
 def _problem(cfg: _Config) -> ShootingProblem:
@@ -173,19 +181,20 @@ def _problem(cfg: _Config) -> ShootingProblem:
         u = data.u_ref * c[:3]
         qs, ws = held_torque_states(data.inertia, x[:4], x[4:] * data.w_ref, h, u[None], cfg.substeps)
         x_next = jnp.concatenate([qs[-1], ws[-1] / data.w_ref])
-        if cfg.min_time:
-            cost = jnp.zeros((), x.dtype)
-        elif cfg.fuel:
-            cost = h * jnp.sum(data.u_ref * c[3:]) / _cost_scale(cfg, data)
-        else:
-            cost = h * jnp.sum(u * u) / _cost_scale(cfg, data)
+        units, total = _units(data)
+        cost = jnp.zeros((), x.dtype)
+        if cfg.energy:
+            cost = cost + data.weights[1] * units[1] / total * (h * jnp.sum(u * u) / units[1])
+        if cfg.fuel:
+            cost = cost + data.weights[2] * units[2] / total * (h * jnp.sum(data.u_ref * c[3:]) / units[2])
         return x_next, cost, _path(cfg, data, qs[1:], ws[1:], c, p, k)
 
     def terminal(xN, data):
         return jnp.concatenate([_multiply(_conjugate(data.qf), xN[:4])[1:], xN[4:] - data.wf / data.w_ref])
 
     def objective(p, data):
-        return p[0] if cfg.min_time else jnp.zeros((), p.dtype)
+        units, total = _units(data)
+        return data.weights[0] * units[0] / total * p[0] if cfg.min_time else jnp.zeros((), p.dtype)
 
     return ShootingProblem(stage, terminal, objective)
 
@@ -259,6 +268,19 @@ def _controls(cfg: _Config, v, clip):
     return v
 
 
+def _cost(cfg: _Config, data: _Data, T, c):
+    """The cost in physical units: ``w_T T + w_E int |u|^2 dt + w_F int sum_i sigma_i dt`` (the
+    epigraph variables ``sigma_i = |u_i|`` at the optimum) for the scaled controls ``c``."""
+    h = T / cfg.intervals
+    cost = data.weights[0] * T if cfg.min_time else jnp.zeros((), T.dtype)
+    if cfg.energy:
+        u = data.u_ref[None] * c[:, :3]
+        cost = cost + data.weights[1] * h * jnp.sum(u * u)
+    if cfg.fuel:
+        cost = cost + data.weights[2] * h * jnp.sum(data.u_ref[None] * c[:, 3:])
+    return cost
+
+
 @functools.partial(jax.jit, static_argnames=("cfg", "max_iter"))
 def _solve(data: _Data, cfg: _Config, tol, max_iter: int, keys, init=None):
     """Every start (one per row of ``keys``) solved side by side, then the best: the least cost
@@ -283,7 +305,8 @@ def _solve(data: _Data, cfg: _Config, tol, max_iter: int, keys, init=None):
         return solve_shooting(problem, x0, X, U, p, data, tol=tol, max_iter=max_iter, mu0=mu0)
 
     sols = jax.vmap(one)(keys, jnp.arange(keys.shape[0]) == 0)
-    costs = data.duration * sols.p[:, 0] if cfg.min_time else sols.objective * _cost_scale(cfg, data)
+    times = data.duration * sols.p[:, 0] if cfg.min_time else jnp.broadcast_to(data.duration, sols.converged.shape)
+    costs = jax.vmap(lambda t, c: _cost(cfg, data, t, c))(times, sols.u)
     start_costs = jnp.where(sols.converged, costs, jnp.inf)
     best = jnp.where(jnp.any(sols.converged), jnp.argmin(start_costs), jnp.argmin(sols.kkt))
     sol = jax.tree.map(lambda a: a[best], sols)
@@ -320,28 +343,30 @@ def _solve(data: _Data, cfg: _Config, tol, max_iter: int, keys, init=None):
     )
 
 
-def _cones(keep_out, dtype) -> np.ndarray:
+def _cones(keep_out, keep_in, dtype) -> np.ndarray:
+    """Rows ``(body axis, inertial direction, cos(half angle), sign)``, unit vectors; the
+    constraint is ``sign (s . R(q) a - cos(half)) <= 0``: sign ``+1`` keep-out, ``-1`` keep-in."""
     rows = []
-    for i, cone in enumerate(keep_out):
-        try:
-            axis, direction, half = cone
-        except (TypeError, ValueError):
-            raise ValueError(
-                f"keep_out[{i}] must be (body_axis (3,), inertial_direction (3,), half_angle_rad), got {cone!r}"
-            ) from None
-        axis, direction = np.asarray(axis, np.float64), np.asarray(direction, np.float64)
-        half = float(half)
-        if axis.shape != (3,) or direction.shape != (3,):
-            raise ValueError(
-                f"keep_out[{i}]: body_axis and inertial_direction must be shaped (3,), "
-                f"got {axis.shape} and {direction.shape}"
-            )
-        if not (np.linalg.norm(axis) > 0 and np.linalg.norm(direction) > 0 and 0 < half < np.pi):
-            raise ValueError(f"keep_out[{i}]: the axes must be non-zero and 0 < half_angle_rad < pi, got {cone!r}")
-        rows.append(
-            np.concatenate([axis / np.linalg.norm(axis), direction / np.linalg.norm(direction), [np.cos(half)]])
-        )
-    return np.asarray(rows, np.float64).reshape(-1, 7).astype(dtype)
+    for name, sign, cones in (("keep_out", 1.0, keep_out), ("keep_in", -1.0, keep_in)):
+        for i, cone in enumerate(cones):
+            try:
+                axis, direction, half = cone
+            except (TypeError, ValueError):
+                raise ValueError(
+                    f"{name}[{i}] must be (body_axis (3,), inertial_direction (3,), half_angle_rad), got {cone!r}"
+                ) from None
+            axis, direction = np.asarray(axis, np.float64), np.asarray(direction, np.float64)
+            half = float(half)
+            if axis.shape != (3,) or direction.shape != (3,):
+                raise ValueError(
+                    f"{name}[{i}]: body_axis and inertial_direction must be shaped (3,), "
+                    f"got {axis.shape} and {direction.shape}"
+                )
+            if not (np.linalg.norm(axis) > 0 and np.linalg.norm(direction) > 0 and 0 < half < np.pi):
+                raise ValueError(f"{name}[{i}]: the axes must be non-zero and 0 < half_angle_rad < pi, got {cone!r}")
+            unit = [axis / np.linalg.norm(axis), direction / np.linalg.norm(direction), [np.cos(half), sign]]
+            rows.append(np.concatenate(unit))
+    return np.asarray(rows, np.float64).reshape(-1, 8).astype(dtype)
 
 
 def _check_grid(intervals, substeps) -> None:
@@ -418,7 +443,7 @@ def _check_duration(duration) -> float:
     return duration
 
 
-def _prepare(inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out):
+def _prepare(inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out, keep_in):
     """Validated, batch-broadcast arrays (shape errors name the argument)."""
     inertia = _validated(inertia)
     if inertia.shape != (3, 3):
@@ -445,13 +470,13 @@ def _prepare(inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out
         rate_bound = float(rate_bound)
         if not (rate_bound > 0 and np.isfinite(rate_bound)):
             raise ValueError(f"argument 'rate_bound' must be a positive finite float, got {rate_bound}")
-    cones = _cones(keep_out, np.dtype(dtype))
+    cones = _cones(keep_out, keep_in, np.dtype(dtype))
     q0 = q0 / jnp.linalg.norm(q0, axis=-1, keepdims=True)
     qf = qf / jnp.linalg.norm(qf, axis=-1, keepdims=True)
     return jnp.asarray(inertia, dtype), q0, qf, w0, wf, bound, rate_bound, cones
 
 
-def _run(cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, bound, rate_bound, cones, options):
+def _run(cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, bound, rate_bound, cones, weights, options):
     tol, max_iter, throw, starts, seed, init = options
     _check_resolution(duration, q0, qf, w0, wf, cfg.intervals, cfg.substeps)
     dtype = q0.dtype
@@ -471,6 +496,7 @@ def _run(cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, bound, rate_bound
             inf * jnp.ones(3, dtype) if bound is None else bound,
             inf if rate_bound is None else jnp.asarray(rate_bound, dtype),
             jnp.asarray(cones, dtype),
+            jnp.asarray(weights, dtype),
         )
 
     flat = [jnp.reshape(a, (-1,) + a.shape[len(batch) :]) for a in (q0, qf, w0, wf, duration, u_ref, w_ref)]
@@ -482,8 +508,7 @@ def _run(cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, bound, rate_bound
         bad = ~np.asarray(out.converged)
         if np.any(bad):
             raise RuntimeError(
-                f"{'minimum time' if cfg.min_time else 'minimum fuel' if cfg.fuel else 'minimum energy'} "
-                "reorientation: the interior-point method did not converge"
+                "optimal reorientation: the interior-point method did not converge"
                 f" for {int(bad.sum())} of {bad.size} problems (largest KKT residual "
                 f"{float(np.max(np.asarray(out.kkt_residual)[bad])):.3g}, violation "
                 f"{float(np.max(np.asarray(out.violation)[bad])):.3g}). Try more intervals, max_iter, or a smaller "
@@ -517,6 +542,78 @@ def _scales(inertia, q0, qf, w0, wf, duration_or_bound, min_time: bool):
     return T, u_ref, jnp.where(rate > 0, rate, 1.0)
 
 
+def optimal_reorientation(
+    inertia: Float[Array, "3 3"],
+    q0: Float[Array, "*batch 4"],
+    qf: Float[Array, "*batch 4"],
+    omega0: Float[Array, "*batch 3"] | None = None,
+    omegaf: Float[Array, "*batch 3"] | None = None,
+    *,
+    duration: float | None = None,
+    time_weight: float = 0.0,
+    energy_weight: float = 0.0,
+    fuel_weight: float = 0.0,
+    torque_bound: Float[Array, "3"] | None = None,
+    rate_bound: float | None = None,
+    keep_out: Sequence = (),
+    keep_in: Sequence = (),
+    intervals: int = 40,
+    substeps: int = 4,
+    tol: float = 1e-9,
+    max_iter: int = 200,
+    throw: bool = True,
+    starts: int = 1,
+    seed: int = 0,
+    init=None,
+) -> ConstrainedReorientation:
+    """Least ``time_weight T + energy_weight int |u|^2 dt + fuel_weight int sum_i |u_i| dt`` taking
+    ``(q0, omega0)`` to ``(qf, omegaf)``: any weighted mix of the three objectives.
+
+    ``duration=None`` leaves the final time free (then ``time_weight > 0`` and ``torque_bound``
+    are required: the torque bound sets the time scale); a ``duration`` fixes it (then
+    ``time_weight`` must be 0). ``fuel_weight > 0`` needs ``torque_bound`` (the l1 cost's
+    epigraph variables live inside it). ``cost`` is the mix in physical units. Dynamics,
+    constraints (``torque_bound``, ``rate_bound``, ``keep_out``, ``keep_in``), batching, starts and
+    warm starts as in :func:`minimum_energy_reorientation`; :func:`minimum_energy_reorientation`,
+    :func:`minimum_fuel_reorientation` and :func:`constrained_minimum_time` are its single-objective
+    cases. Example: ``time_weight=1, energy_weight=rho`` trades the slew time against the energy;
+    for a rest-to-rest slew of a body with ``J = I`` whose torque bound does not bind, the energy
+    at fixed time is ``c / T^3`` (the dynamics are invariant under ``t -> a t``, ``u -> u / a^2``),
+    so the optimum has ``3 rho E = T``."""
+    _check_grid(intervals, substeps)
+    weights = np.asarray([time_weight, energy_weight, fuel_weight], np.float64)
+    if weights.shape != (3,) or not np.all(np.isfinite(weights)) or np.any(weights < 0) or not np.any(weights > 0):
+        raise ValueError(
+            "arguments 'time_weight', 'energy_weight' and 'fuel_weight' must be finite and >= 0, one of them > 0; "
+            f"got {tuple(weights)}"
+        )
+    free = duration is None
+    if free and (weights[0] == 0 or torque_bound is None):
+        raise ValueError("a free final time (duration=None) needs time_weight > 0 and a torque_bound")
+    if not free and weights[0] != 0:
+        raise ValueError(f"argument 'time_weight' must be 0 with a fixed 'duration', got {weights[0]}")
+    if weights[2] > 0 and torque_bound is None:
+        raise ValueError("argument 'torque_bound' is required with fuel_weight > 0 (the l1 optimum is impulsive)")
+    inertia, q0, qf, w0, wf, bound, rate_bound, cones = _prepare(
+        inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out, keep_in
+    )
+    T, u_ref, w_ref = _scales(inertia, q0, qf, w0, wf, bound if free else _check_duration(duration), min_time=free)
+    if bound is not None:
+        u_ref = jnp.broadcast_to(jnp.asarray(bound), u_ref.shape)
+    cfg = _Config(
+        intervals,
+        substeps,
+        free,
+        bound is not None,
+        rate_bound is not None,
+        len(cones),
+        fuel=bool(weights[2] > 0),
+        energy=bool(weights[1] > 0),
+    )
+    options = _options(tol, max_iter, throw, starts, seed, init)
+    return _run(cfg, inertia, q0, qf, w0, wf, T, u_ref, w_ref, bound, rate_bound, cones, weights, options)
+
+
 def minimum_energy_reorientation(
     inertia: Float[Array, "3 3"],
     q0: Float[Array, "*batch 4"],
@@ -528,6 +625,7 @@ def minimum_energy_reorientation(
     torque_bound: Float[Array, "3"] | None = None,
     rate_bound: float | None = None,
     keep_out: Sequence = (),
+    keep_in: Sequence = (),
     intervals: int = 40,
     substeps: int = 4,
     tol: float = 1e-9,
@@ -544,7 +642,9 @@ def minimum_energy_reorientation(
     optional): ``|u_i| <= torque_bound[i]``; ``|w_i| <= rate_bound`` at every integration
     step; ``keep_out``: ``(body_axis, inertial_direction, half_angle_rad)`` triples, the body
     axis's inertial image ``R(q) a`` staying at least the half angle away from the direction at
-    every integration step. Terminal: ``q(T) = +-qf``, ``w(T) = omegaf`` (rates default to rest).
+    every integration step; ``keep_in``: the same triples, the image staying within the half
+    angle of the direction (the boundary states must satisfy them). Terminal: ``q(T) = +-qf``,
+    ``w(T) = omegaf`` (rates default to rest).
     Direct multiple shooting solved by a primal-dual interior-point method (module docstring);
     leading batch axes on ``q0``, ``qf``, ``omega0``, ``omegaf`` solve in one compiled call.
     ``q0``/``qf`` are normalised. Raises ``RuntimeError`` if a problem does not converge to ``tol``
@@ -556,29 +656,26 @@ def minimum_energy_reorientation(
     ``0.2 N(0, 1)`` (draws from ``seed``); the result is the converged start of least cost
     (``start_costs`` has them all). Each start is converged to its KKT point, so the choice is
     between converged local optima and does not depend on the CPU's rounding."""
-    _check_grid(intervals, substeps)
-    duration = _check_duration(duration)
-    inertia, q0, qf, w0, wf, bound, rate_bound, cones = _prepare(
-        inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out
-    )
-    T, u_ref, w_ref = _scales(inertia, q0, qf, w0, wf, duration, min_time=False)
-    if bound is not None:
-        u_ref = jnp.broadcast_to(bound, u_ref.shape)
-    cfg = _Config(intervals, substeps, False, bound is not None, rate_bound is not None, len(cones))
-    return _run(
-        cfg,
+    return optimal_reorientation(
         inertia,
         q0,
         qf,
-        w0,
-        wf,
-        T,
-        u_ref,
-        w_ref,
-        bound,
-        rate_bound,
-        cones,
-        _options(tol, max_iter, throw, starts, seed, init),
+        duration=_check_duration(duration),
+        energy_weight=1.0,
+        omega0=omega0,
+        omegaf=omegaf,
+        torque_bound=torque_bound,
+        rate_bound=rate_bound,
+        keep_out=keep_out,
+        keep_in=keep_in,
+        intervals=intervals,
+        substeps=substeps,
+        tol=tol,
+        max_iter=max_iter,
+        throw=throw,
+        starts=starts,
+        seed=seed,
+        init=init,
     )
 
 
@@ -593,6 +690,7 @@ def minimum_fuel_reorientation(
     torque_bound: Float[Array, "3"],
     rate_bound: float | None = None,
     keep_out: Sequence = (),
+    keep_in: Sequence = (),
     intervals: int = 40,
     substeps: int = 4,
     tol: float = 1e-9,
@@ -611,30 +709,28 @@ def minimum_fuel_reorientation(
     (``|u_i| <= sigma_i <= b_i``, cost ``sum h sigma_i``). The optimum is bang-off-bang: torque
     on a bound or zero, except in the intervals that hold a switch. ``cost`` is the fuel.
     ``starts``, ``seed`` and ``init`` as there."""
-    _check_grid(intervals, substeps)
-    duration = _check_duration(duration)
     if torque_bound is None:
         raise ValueError("argument 'torque_bound' is required for minimum fuel (the l1 optimum is impulsive)")
-    inertia, q0, qf, w0, wf, bound, rate_bound, cones = _prepare(
-        inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out
-    )
-    T, u_ref, w_ref = _scales(inertia, q0, qf, w0, wf, duration, min_time=False)
-    u_ref = jnp.broadcast_to(jnp.asarray(bound), u_ref.shape)  # bound is torque_bound's array here
-    cfg = _Config(intervals, substeps, False, True, rate_bound is not None, len(cones), fuel=True)
-    return _run(
-        cfg,
+    return optimal_reorientation(
         inertia,
         q0,
         qf,
-        w0,
-        wf,
-        T,
-        u_ref,
-        w_ref,
-        bound,
-        rate_bound,
-        cones,
-        _options(tol, max_iter, throw, starts, seed, init),
+        duration=_check_duration(duration),
+        fuel_weight=1.0,
+        omega0=omega0,
+        omegaf=omegaf,
+        torque_bound=torque_bound,
+        rate_bound=rate_bound,
+        keep_out=keep_out,
+        keep_in=keep_in,
+        intervals=intervals,
+        substeps=substeps,
+        tol=tol,
+        max_iter=max_iter,
+        throw=throw,
+        starts=starts,
+        seed=seed,
+        init=init,
     )
 
 
@@ -648,6 +744,7 @@ def constrained_minimum_time(
     *,
     rate_bound: float | None = None,
     keep_out: Sequence = (),
+    keep_in: Sequence = (),
     intervals: int = 40,
     substeps: int = 4,
     tol: float = 1e-9,
@@ -664,24 +761,23 @@ def constrained_minimum_time(
     Time-optimal problems have several local optima (Bilimoria and Wie's 180-degree turn at 10
     intervals: 3.2596 and 3.2765), hence 8 starts by default. :func:`jaxquat.minimum_time_reorientation`
     calls this (its default ``method="interior_point"``)."""
-    _check_grid(intervals, substeps)
-    inertia, q0, qf, w0, wf, bound, rate_bound, cones = _prepare(
-        inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out
-    )
-    T, u_ref, w_ref = _scales(inertia, q0, qf, w0, wf, bound, min_time=True)
-    cfg = _Config(intervals, substeps, True, True, rate_bound is not None, len(cones))
-    return _run(
-        cfg,
+    return optimal_reorientation(
         inertia,
         q0,
         qf,
-        w0,
-        wf,
-        T,
-        u_ref,
-        w_ref,
-        bound,
-        rate_bound,
-        cones,
-        _options(tol, max_iter, throw, starts, seed, init),
+        time_weight=1.0,
+        omega0=omega0,
+        omegaf=omegaf,
+        torque_bound=torque_bound,
+        rate_bound=rate_bound,
+        keep_out=keep_out,
+        keep_in=keep_in,
+        intervals=intervals,
+        substeps=substeps,
+        tol=tol,
+        max_iter=max_iter,
+        throw=throw,
+        starts=starts,
+        seed=seed,
+        init=init,
     )

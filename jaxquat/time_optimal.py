@@ -315,6 +315,7 @@ def minimum_time_reorientation(
     throw: bool = True,
     rate_bound: float | None = None,
     keep_out: Sequence = (),
+    keep_in: Sequence = (),
     method: str = "interior_point",
 ) -> Reorientation | ConstrainedReorientation:
     """Shortest time ``T`` and bounded body torque taking ``(q0, omega0)`` to ``(qf, omegaf)``.
@@ -330,8 +331,9 @@ def minimum_time_reorientation(
     side (``seed``; ``init`` an earlier result to warm-start from, e.g. to refine ``intervals``),
     each converged to a KKT error of 1e-9; returns a :class:`jaxquat.ConstrainedReorientation`
     (``time``, ``ts``, ``q``, ``omega``, ``torque``, ``controls``, ``violation``, ``switching``,
-    ``start_costs``, ...). Also takes ``rate_bound`` (``|w_i| <= rate_bound``) and ``keep_out``
-    (``(body_axis (3,), inertial_direction (3,), half_angle_rad)`` triples). Its result does not
+    ``start_costs``, ...). Also takes ``rate_bound`` (``|w_i| <= rate_bound``), ``keep_out`` and
+    ``keep_in`` (``(body_axis (3,), inertial_direction (3,), half_angle_rad)`` triples: cones the
+    body axis's inertial image must stay out of, or in). Its result does not
     depend on the CPU's vector instructions or thread count (measured: the same time to the last
     digit or to 1e-15 under XLA's AVX-512, AVX2 and SSE4.2 code, 1 to 4 host devices, one core).
 
@@ -378,6 +380,7 @@ def minimum_time_reorientation(
             omegaf,
             rate_bound=rate_bound,
             keep_out=keep_out,
+            keep_in=keep_in,
             intervals=intervals,
             substeps=substeps,
             throw=throw,
@@ -385,9 +388,9 @@ def minimum_time_reorientation(
             seed=seed,
             init=init,
         )
-    if rate_bound is not None or len(keep_out) > 0:
+    if rate_bound is not None or len(keep_out) > 0 or len(keep_in) > 0:
         raise ValueError(
-            "method='single_shooting' handles torque bounds only; rate_bound and keep_out need "
+            "method='single_shooting' handles torque bounds only; rate_bound, keep_out and keep_in need "
             "method='interior_point' (the default)"
         )
     inertia = _validated(inertia)

@@ -572,6 +572,7 @@ def test_every_public_name_is_in_the_contract():
         "constrained_minimum_time",
         "minimum_energy_reorientation",
         "minimum_fuel_reorientation",
+        "optimal_reorientation",
         # the MEKF (a filter over a time axis, with its own jit/vmap/grad tests): tests/test_mekf.py
         "FilterState",
         "FilterUpdate",

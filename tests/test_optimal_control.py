@@ -164,6 +164,26 @@ def test_every_constraint_holds_on_a_ten_times_finer_resimulation(constrained_en
     assert np.max(np.abs(ws)) > 0.99 * RATE
 
 
+def test_a_keep_in_cone_is_the_complementary_keep_out_cone_and_binds():
+    """Body x kept within 110 degrees of d = (-1, -1, 3)/sqrt(11): the eigenaxis path (x from
+    (1, 0, 0) to (0, 1, 0) in the xy plane) leaves the cone at its middle (115 degrees), so the
+    slew must tilt x towards +z. The same set is ``x`` at least 70 degrees from ``-d``: both
+    forms give the same optimum (the same configuration as the fixture above, so one compile)."""
+    d = np.array([-1.0, -1.0, 3.0]) / np.sqrt(11.0)
+    x = np.array([1.0, 0.0, 0.0])
+    common = dict(torque_bound=TORQUE, rate_bound=RATE, intervals=N)
+    inside = jq.minimum_energy_reorientation(np.eye(3), Q0, QZ, 3.0, keep_in=[(x, d, np.deg2rad(110))], **common)
+    outside = jq.minimum_energy_reorientation(np.eye(3), Q0, QZ, 3.0, keep_out=[(x, -d, np.deg2rad(70))], **common)
+    assert bool(inside.converged) and float(inside.violation) < 1e-9
+    np.testing.assert_allclose(float(inside.cost), float(outside.cost), rtol=1e-8)
+    qs, _ = _resimulate(jnp.eye(3), Q0, np.zeros(3), inside.controls, float(inside.time), 40)
+    axis = np.asarray(jax.vmap(lambda q: jq.rotate(q, jnp.asarray(x)))(jnp.asarray(qs)))
+    angle = np.degrees(np.arccos(np.clip(axis @ d, -1, 1)))
+    assert np.max(angle) <= 110 + 1e-3  # between the solver's steps
+    assert np.max(angle) > 110 - 1e-3  # it binds: the unconstrained path reaches 115 degrees
+    assert np.max(axis[:, 2]) > np.sin(np.deg2rad(4))  # the detour: x tilts towards +z
+
+
 def test_constraints_cost_energy(constrained_energy, free_energy):
     """The constrained slew (3 s) costs more than the unconstrained eigenaxis one would
     (12 theta^2 / T^3 at T = 3 is a lower bound for any held-torque slew)."""
@@ -247,6 +267,46 @@ def test_a_rate_bound_through_the_binding_signature_costs_time(bilimoria_wie):
     assert np.all(np.abs(np.asarray(r.controls)) <= 1 + 1e-8)
 
 
+# ------------------------------------------------------------------ weighted mixes
+
+
+def test_time_and_energy_mix_meets_its_stationarity_condition():
+    """min T + rho int |u|^2 dt, 90 degrees rest to rest, J = I, |u_i| <= 10 (not binding: the
+    torque peaks near 3). With J = I the held-torque problem is invariant under t -> a t,
+    u -> u / a^2 (also discretised: RKMK4 is built from h f), so the least energy in time T is
+    c / T^3 and the optimal T has d/dT (T + rho c / T^3) = 0: T = 3 rho E. Checked on the
+    returned torque; and the continuous c = 12 theta^2 bounds c from below."""
+    rho = 0.1
+    r = jq.optimal_reorientation(
+        np.eye(3), Q0, QZ, time_weight=1.0, energy_weight=rho, torque_bound=10 * np.ones(3), intervals=N
+    )
+    assert bool(r.converged) and float(r.violation) < 1e-9
+    T = float(r.time)
+    u = np.asarray(r.controls)
+    assert np.max(np.abs(u)) < 9  # the bound does not bind
+    E = T / N * np.sum(u * u)
+    np.testing.assert_allclose(3 * rho * E, T, rtol=1e-7)
+    np.testing.assert_allclose(float(r.cost), T + rho * E, rtol=1e-12)
+    assert E * T**3 >= 12 * (np.pi / 2) ** 2 * (1 - 1e-9)  # held torque is no better than continuous
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(duration=2.0), "time_weight.*energy_weight.*fuel_weight"),
+        (dict(duration=2.0, energy_weight=-1.0), "must be finite and >= 0"),
+        (dict(duration=2.0, energy_weight=np.nan), "must be finite and >= 0"),
+        (dict(energy_weight=1.0), "free final time .* time_weight > 0 and a torque_bound"),
+        (dict(time_weight=1.0), "free final time .* torque_bound"),
+        (dict(duration=2.0, time_weight=1.0, torque_bound=np.ones(3)), "'time_weight' must be 0 with a fixed"),
+        (dict(duration=2.0, fuel_weight=1.0), "'torque_bound' is required with fuel_weight"),
+    ],
+)
+def test_mix_bad_weights_raise(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        jq.optimal_reorientation(np.eye(3), Q0, QZ, **kwargs)
+
+
 # ------------------------------------------------------------------ bad input (no solve)
 
 
@@ -266,6 +326,8 @@ def _batched_result():
         (dict(keep_out=[(np.ones(2), np.ones(3), 0.3)]), "keep_out\\[0\\].*shaped \\(3,\\)"),
         (dict(keep_out=[(np.zeros(3), np.ones(3), 0.3)]), "keep_out\\[0\\].*non-zero"),
         (dict(keep_out=[(np.ones(3), np.ones(3), 4.0)]), "half_angle"),
+        (dict(keep_in=[(np.ones(3), np.ones(3))]), "keep_in\\[0\\]"),
+        (dict(keep_out=[], keep_in=[(np.ones(3), np.zeros(3), 0.3)]), "keep_in\\[0\\].*non-zero"),
         (dict(rate_bound=-1.0), "rate_bound"),
         (dict(rate_bound=float("nan")), "rate_bound"),
         (dict(torque_bound=np.array([1.0, 0.0, 1.0])), "torque_bound"),
