@@ -145,6 +145,7 @@ from .optimal_control import (
     minimum_fuel_reorientation as minimum_fuel_reorientation,
     constrained_minimum_time as constrained_minimum_time,
     optimal_reorientation as optimal_reorientation,
+    refine_mesh as refine_mesh,
 )
 from .rigid_body import (
     RigidBody as RigidBody,
@@ -313,6 +314,7 @@ __all__ = [
     "minimum_energy_reorientation",
     "minimum_fuel_reorientation",
     "optimal_reorientation",
+    "refine_mesh",
     "constrained_minimum_time",
     "Reorientation",
     "minimum_time_reorientation",

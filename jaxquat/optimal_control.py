@@ -47,6 +47,7 @@ from .lie_solvers import RKMK4, BodyRateTerm
 __all__ = [
     "ConstrainedReorientation",
     "optimal_reorientation",
+    "refine_mesh",
     "minimum_energy_reorientation",
     "minimum_fuel_reorientation",
     "constrained_minimum_time",
@@ -100,6 +101,7 @@ class _Data(NamedTuple):
     rate_bound: Array  # (inf: none)
     cones: Array  # (n, 8): body axis, inertial direction, cos(half angle), +1 keep-out / -1 keep-in
     weights: Array  # (3,) of the time, int |u|^2 dt and int |u|_1 dt in the cost
+    fractions: Array  # (N,) interval lengths over the duration (sum 1; used when not uniform)
 
 
 class _Config(NamedTuple):
@@ -111,12 +113,24 @@ class _Config(NamedTuple):
     n_cones: int
     fuel: bool = False  # int |u|_1 dt in the cost: controls (v, sigma) with |v_i| <= sigma_i <= 1
     energy: bool = False  # int |u|^2 dt in the cost
+    uniform: bool = True  # equal intervals (else data.fractions)
 
 
-def held_torque_states(inertia, q0, w0, time, u, substeps: int):
+def _grid(n: int, substeps: int, fractions, dtype) -> Array:
+    """The normalised integration grid ``(n * substeps + 1,)``: ``substeps`` equal steps in each
+    interval, the intervals equal (``fractions=None``) or of lengths ``fractions``."""
+    if fractions is None:
+        return jnp.linspace(0.0, 1.0, n * substeps + 1, dtype=dtype)
+    edges = jnp.concatenate([jnp.zeros(1, dtype), jnp.cumsum(fractions)])
+    inner = edges[:-1, None] + fractions[:, None] * (jnp.arange(substeps, dtype=dtype) / substeps)[None]
+    return jnp.concatenate([inner.ravel(), edges[-1:]])
+
+
+def held_torque_states(inertia, q0, w0, time, u, substeps: int, fractions=None):
     """Every state ``(q, w)`` of RKMK4 through the piecewise-constant torque ``u`` ``(n, 3)`` over
     ``[0, time]``, ``substeps`` steps per interval: ``(n * substeps + 1, 4)`` and ``(.., 3)``
-    (the first row the initial state). Shared by the shooting stages (``n = 1``), the returned
+    (the first row the initial state); the intervals are equal, or ``fractions`` ``(n,)`` of
+    ``time``. Shared by the shooting stages (``n = 1``), the returned
     trajectories and :func:`jaxquat.minimum_time_reorientation`'s rollout.
 
     One flat grid of ``n * substeps`` steps, each with its interval's torque, not ``n``
@@ -127,7 +141,7 @@ def held_torque_states(inertia, q0, w0, time, u, substeps: int):
     def field(t, y, u_k):  # the Lie-algebra form: the body rate itself on the quaternion leaf
         return y[1], _euler_body(inertia, y[1], u_k)
 
-    ts = jnp.linspace(0.0, 1.0, u.shape[0] * substeps + 1, dtype=w0.dtype) * time
+    ts = _grid(u.shape[0], substeps, fractions, w0.dtype) * time
     return solve_fixed_steps(
         RKMK4(),
         BodyRateTerm(field),
@@ -177,7 +191,7 @@ def _problem(cfg: _Config) -> ShootingProblem:
         return data.duration * p[0] if cfg.min_time else data.duration
 
     def stage(x, c, p, data, k):
-        h = duration(p, data) / cfg.intervals
+        h = duration(p, data) / cfg.intervals if cfg.uniform else duration(p, data) * data.fractions[k]
         u = data.u_ref * c[:3]
         qs, ws = held_torque_states(data.inertia, x[:4], x[4:] * data.w_ref, h, u[None], cfg.substeps)
         x_next = jnp.concatenate([qs[-1], ws[-1] / data.w_ref])
@@ -214,8 +228,12 @@ def _guess(cfg: _Config, data: _Data):
     N = cfg.intervals
     dtype = data.q0.dtype
     rotvec = minus(data.qf, data.q0)
-    s = jnp.arange(1, N + 1, dtype=dtype) / N
-    sm = (jnp.arange(N, dtype=dtype) + 0.5) / N
+    if cfg.uniform:
+        s = jnp.arange(1, N + 1, dtype=dtype) / N
+        sm = (jnp.arange(N, dtype=dtype) + 0.5) / N
+    else:
+        s = jnp.cumsum(data.fractions)
+        sm = s - data.fractions / 2
     if cfg.min_time:
         shape = jnp.where(s < 0.5, 2 * s * s, 1 - 2 * (1 - s) ** 2)
         rate = jnp.where(sm < 0.5, 4 * sm, 4 * (1 - sm))
@@ -240,18 +258,20 @@ def _guess(cfg: _Config, data: _Data):
 
 
 def _resampled(cfg: _Config, data: _Data, init):
-    """A warm start from a previous result ``init`` (any number of intervals): its torque per new
-    interval (the old interval holding the new midpoint), its trajectory interpolated at the new
-    nodes (linear in normalised time, ``q`` renormalised), its time. Scaled as the NLP's unknowns."""
-    N = cfg.intervals
+    """A warm start from a previous result ``init`` (any grid): its torque on each new interval's
+    midpoint, its trajectory interpolated at the new nodes (linear in normalised time, ``q``
+    renormalised), its time. Scaled as the NLP's unknowns."""
     dtype = data.q0.dtype
-    controls, q, w = (jnp.asarray(a, dtype) for a in (init.controls, init.q, init.omega))
-    n0, grid = controls.shape[0], q.shape[0] - 1
-    mid = (jnp.arange(N, dtype=dtype) + 0.5) / N
-    u = controls[jnp.minimum(jnp.floor(mid * n0).astype(jnp.int32), n0 - 1)]
-    pos = jnp.arange(1, N + 1, dtype=dtype) / N * grid
-    i = jnp.clip(jnp.floor(pos).astype(jnp.int32), 0, grid - 1)
-    f = (pos - i)[:, None]
+    old = jnp.asarray(init.ts, dtype) / jnp.asarray(init.time, dtype)
+    torque, q, w = (jnp.asarray(a, dtype) for a in (init.torque, init.q, init.omega))
+    edges = _grid(cfg.intervals, 1, None if cfg.uniform else data.fractions, dtype)
+
+    def at(t):  # the grid cell holding t, and t's position in it
+        i = jnp.clip(jnp.searchsorted(old, t, side="right") - 1, 0, old.shape[0] - 2)
+        return i, ((t - old[i]) / (old[i + 1] - old[i]))[:, None]
+
+    u = torque[at((edges[:-1] + edges[1:]) / 2)[0]]
+    i, f = at(edges[1:])
     qs = (1 - f) * q[i] + f * q[i + 1]
     ws = (1 - f) * w[i] + f * w[i + 1]
     X = jnp.concatenate([qs / jnp.linalg.norm(qs, axis=-1, keepdims=True), ws / data.w_ref], axis=1)
@@ -271,13 +291,13 @@ def _controls(cfg: _Config, v, clip):
 def _cost(cfg: _Config, data: _Data, T, c):
     """The cost in physical units: ``w_T T + w_E int |u|^2 dt + w_F int sum_i sigma_i dt`` (the
     epigraph variables ``sigma_i = |u_i|`` at the optimum) for the scaled controls ``c``."""
-    h = T / cfg.intervals
+    h = T / cfg.intervals if cfg.uniform else (T * data.fractions)[:, None]
     cost = data.weights[0] * T if cfg.min_time else jnp.zeros((), T.dtype)
     if cfg.energy:
         u = data.u_ref[None] * c[:, :3]
-        cost = cost + data.weights[1] * h * jnp.sum(u * u)
+        cost = cost + data.weights[1] * jnp.sum(h * u * u)
     if cfg.fuel:
-        cost = cost + data.weights[2] * h * jnp.sum(data.u_ref[None] * c[:, 3:])
+        cost = cost + data.weights[2] * jnp.sum(h * data.u_ref[None] * c[:, 3:])
     return cost
 
 
@@ -314,8 +334,9 @@ def _solve(data: _Data, cfg: _Config, tol, max_iter: int, keys, init=None):
     u = sol.u[:, :3] * data.u_ref[None]
     # The trajectory, re-integrated from q0 with the returned torque on one flat grid.
     N, m = cfg.intervals, cfg.substeps
-    ts = jnp.linspace(0.0, 1.0, N * m + 1, dtype=X.dtype) * T
-    qs, ws = held_torque_states(data.inertia, data.q0, data.w0, T, u, m)
+    fractions = None if cfg.uniform else data.fractions
+    ts = _grid(N, m, fractions, X.dtype) * T
+    qs, ws = held_torque_states(data.inertia, data.q0, data.w0, T, u, m, fractions)
 
     def lam_dot_f(v, c, x, y, k):  # costate . F as a function of the scaled torque v
         return y @ problem.stage(x, c.at[:3].set(v), sol.p, data, k)[0]
@@ -376,6 +397,36 @@ def _check_grid(intervals, substeps) -> None:
         )
 
 
+def _mesh(mesh, intervals: int) -> tuple[int, np.ndarray | None]:
+    """``(intervals, fractions)``: ``mesh`` (interval lengths, any positive scale) normalised to
+    sum 1, or ``None`` for ``intervals`` equal ones."""
+    if mesh is None:
+        return intervals, None
+    m = np.asarray(mesh, np.float64)
+    if m.ndim != 1 or m.shape[0] < 2 or not np.all(np.isfinite(m)) or not np.all(m > 0):
+        raise ValueError(f"argument 'mesh' must be a 1-D array of >= 2 positive interval lengths, got {m}")
+    return int(m.shape[0]), m / np.sum(m)
+
+
+def refine_mesh(result, *, threshold: float = 1e-3) -> np.ndarray:
+    """Interval lengths (fractions of the duration) of ``result``'s mesh with every interval that
+    holds a switch halved. In a bang-bang solution each torque component sits on its bound except
+    in the intervals where it switches (or on a singular arc), so an interval is split when some
+    component is below ``(1 - threshold)`` times that component's largest magnitude. Pass the
+    lengths as ``mesh=`` with ``init=result`` to resolve the switches without refining the rest
+    (an unbatched result of the multiple-shooting solvers; for smooth, unsaturated torques, as in
+    minimum energy, every interval is split)."""
+    u = np.abs(np.asarray(result.controls))
+    ts = np.asarray(result.ts)
+    if u.ndim != 2 or ts.ndim != 1:
+        raise ValueError(f"argument 'result' must be a single (unbatched) result, got controls shaped {u.shape}")
+    n = u.shape[0]
+    edges = ts[:: (ts.shape[0] - 1) // n] / ts[-1]
+    split = np.any(u < (1 - threshold) * np.max(u, axis=0), axis=1)
+    lengths = np.diff(edges)
+    return np.concatenate([[w / 2, w / 2] if cut else [w] for w, cut in zip(lengths, split)])
+
+
 def _check_starts(starts) -> None:
     if not isinstance(starts, int) or starts < 1:
         raise ValueError(f"argument 'starts' must be an int >= 1, got {starts!r}")
@@ -385,7 +436,7 @@ def _options(tol, max_iter, throw, starts, seed, init) -> tuple:
     """The solver options, checked: ``starts`` a positive int; ``init`` a single earlier result."""
     _check_starts(starts)
     if init is not None:
-        if not all(hasattr(init, f) for f in ("time", "controls", "q", "omega")):
+        if not all(hasattr(init, f) for f in ("time", "ts", "q", "omega", "torque", "controls")):
             raise TypeError(
                 "argument 'init' must be an earlier result (Reorientation or ConstrainedReorientation), "
                 f"got {type(init).__name__}"
@@ -394,27 +445,28 @@ def _options(tol, max_iter, throw, starts, seed, init) -> tuple:
             raise ValueError(
                 f"argument 'init' must be a single (unbatched) result, got time shaped {np.shape(init.time)}"
             )
-        init = (init.time, init.controls, init.q, init.omega)
-        init = _Warm(*(jnp.asarray(a) for a in init))
+        init = _Warm(*(jnp.asarray(a) for a in (init.time, init.ts, init.q, init.omega, init.torque)))
     return tol, max_iter, throw, starts, int(seed), init
 
 
 class _Warm(NamedTuple):
     time: Array
-    controls: Array
+    ts: Array
     q: Array
     omega: Array
+    torque: Array
 
 
 _MAX_STEP_ANGLE = 0.5  # rad the body may turn in one RKMK4 step of the reference profile
 
 
-def _check_resolution(T, q0, qf, w0, wf, intervals: int, substeps: int) -> None:
+def _check_resolution(T, q0, qf, w0, wf, intervals: int, substeps: int, widest: float | None = None) -> None:
     """Raise before any work when the grid cannot resolve the motion: the body would turn by
     more than ``_MAX_STEP_ANGLE`` in one integration step of the reference time ``T`` (the larger
     of the boundary rates and the eigenaxis profile's peak rate ``2 theta / T``). Such a problem
     used to run its whole budget (about 40 s at 10 intervals) and return NaN or fail. Checked
-    where the values are concrete (eager calls), for the worst problem of a batch."""
+    where the values are concrete (eager calls), for the worst problem of a batch; ``widest`` the
+    longest interval's share of ``T`` (``1 / intervals`` by default)."""
     values = [_checks.concrete(a) for a in (T, q0, qf, w0, wf)]
     if any(v is None for v in values):
         return
@@ -425,7 +477,7 @@ def _check_resolution(T, q0, qf, w0, wf, intervals: int, substeps: int) -> None:
     rate, T = np.broadcast_arrays(rate, T)
     k = np.unravel_index(np.argmax(rate * T), rate.shape) if rate.ndim else ()
     rate, T = float(rate[k]), float(T[k])
-    h = T / (intervals * substeps)
+    h = T / (intervals * substeps) if widest is None else T * widest / substeps
     if rate * h > _MAX_STEP_ANGLE:
         need = int(np.ceil(rate * T / _MAX_STEP_ANGLE))
         raise ValueError(
@@ -476,9 +528,10 @@ def _prepare(inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out
     return jnp.asarray(inertia, dtype), q0, qf, w0, wf, bound, rate_bound, cones
 
 
-def _run(cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, bound, rate_bound, cones, weights, options):
+def _run(cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, bound, rate_bound, cones, weights, fractions, options):
     tol, max_iter, throw, starts, seed, init = options
-    _check_resolution(duration, q0, qf, w0, wf, cfg.intervals, cfg.substeps)
+    widest = None if fractions is None else float(np.max(fractions))
+    _check_resolution(duration, q0, qf, w0, wf, cfg.intervals, cfg.substeps, widest)
     dtype = q0.dtype
     batch = q0.shape[:-1]
     inf = jnp.asarray(jnp.inf, dtype)
@@ -497,6 +550,7 @@ def _run(cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, bound, rate_bound
             inf if rate_bound is None else jnp.asarray(rate_bound, dtype),
             jnp.asarray(cones, dtype),
             jnp.asarray(weights, dtype),
+            jnp.full(cfg.intervals, 1 / cfg.intervals, dtype) if fractions is None else jnp.asarray(fractions, dtype),
         )
 
     flat = [jnp.reshape(a, (-1,) + a.shape[len(batch) :]) for a in (q0, qf, w0, wf, duration, u_ref, w_ref)]
@@ -565,6 +619,7 @@ def optimal_reorientation(
     starts: int = 1,
     seed: int = 0,
     init=None,
+    mesh=None,
 ) -> ConstrainedReorientation:
     """Least ``time_weight T + energy_weight int |u|^2 dt + fuel_weight int sum_i |u_i| dt`` taking
     ``(q0, omega0)`` to ``(qf, omegaf)``: any weighted mix of the three objectives.
@@ -581,6 +636,7 @@ def optimal_reorientation(
     at fixed time is ``c / T^3`` (the dynamics are invariant under ``t -> a t``, ``u -> u / a^2``),
     so the optimum has ``3 rho E = T``."""
     _check_grid(intervals, substeps)
+    intervals, fractions = _mesh(mesh, intervals)
     weights = np.asarray([time_weight, energy_weight, fuel_weight], np.float64)
     if weights.shape != (3,) or not np.all(np.isfinite(weights)) or np.any(weights < 0) or not np.any(weights > 0):
         raise ValueError(
@@ -609,9 +665,10 @@ def optimal_reorientation(
         len(cones),
         fuel=bool(weights[2] > 0),
         energy=bool(weights[1] > 0),
+        uniform=fractions is None,
     )
     options = _options(tol, max_iter, throw, starts, seed, init)
-    return _run(cfg, inertia, q0, qf, w0, wf, T, u_ref, w_ref, bound, rate_bound, cones, weights, options)
+    return _run(cfg, inertia, q0, qf, w0, wf, T, u_ref, w_ref, bound, rate_bound, cones, weights, fractions, options)
 
 
 def minimum_energy_reorientation(
@@ -634,6 +691,7 @@ def minimum_energy_reorientation(
     starts: int = 1,
     seed: int = 0,
     init=None,
+    mesh=None,
 ) -> ConstrainedReorientation:
     """Least ``int_0^T |u|^2 dt`` taking ``(q0, omega0)`` to ``(qf, omegaf)`` in the fixed time ``duration``.
 
@@ -655,7 +713,11 @@ def minimum_energy_reorientation(
     grid, e.g. to refine a coarse solution) and from start 0 with its scaled torque perturbed by
     ``0.2 N(0, 1)`` (draws from ``seed``); the result is the converged start of least cost
     (``start_costs`` has them all). Each start is converged to its KKT point, so the choice is
-    between converged local optima and does not depend on the CPU's rounding."""
+    between converged local optima and does not depend on the CPU's rounding.
+
+    Mesh: ``mesh`` interval lengths (any positive scale; then ``intervals`` is ``len(mesh)``)
+    instead of ``intervals`` equal ones; :func:`refine_mesh` halves the intervals next to the
+    torque's switches of an earlier result, to solve again with ``init=`` it."""
     return optimal_reorientation(
         inertia,
         q0,
@@ -676,6 +738,7 @@ def minimum_energy_reorientation(
         starts=starts,
         seed=seed,
         init=init,
+        mesh=mesh,
     )
 
 
@@ -699,6 +762,7 @@ def minimum_fuel_reorientation(
     starts: int = 1,
     seed: int = 0,
     init=None,
+    mesh=None,
 ) -> ConstrainedReorientation:
     """Least fuel ``int_0^T sum_i |u_i| dt`` taking ``(q0, omega0)`` to ``(qf, omegaf)`` in the fixed
     time ``duration``, with ``|u_i| <= torque_bound[i]`` (required: without a bound the l1
@@ -731,6 +795,7 @@ def minimum_fuel_reorientation(
         starts=starts,
         seed=seed,
         init=init,
+        mesh=mesh,
     )
 
 
@@ -753,6 +818,7 @@ def constrained_minimum_time(
     starts: int = 8,
     seed: int = 0,
     init=None,
+    mesh=None,
 ) -> ConstrainedReorientation:
     """Least final time ``T`` taking ``(q0, omega0)`` to ``(qf, omegaf)`` with ``|u_i| <= torque_bound[i]``.
 
@@ -780,4 +846,5 @@ def constrained_minimum_time(
         starts=starts,
         seed=seed,
         init=init,
+        mesh=mesh,
     )

@@ -316,6 +316,7 @@ def minimum_time_reorientation(
     rate_bound: float | None = None,
     keep_out: Sequence = (),
     keep_in: Sequence = (),
+    mesh=None,
     method: str = "interior_point",
 ) -> Reorientation | ConstrainedReorientation:
     """Shortest time ``T`` and bounded body torque taking ``(q0, omega0)`` to ``(qf, omegaf)``.
@@ -328,7 +329,8 @@ def minimum_time_reorientation(
 
     ``method="interior_point"`` (the default): direct multiple shooting solved by the
     interior-point method of :func:`jaxquat.constrained_minimum_time`, ``starts`` starts side by
-    side (``seed``; ``init`` an earlier result to warm-start from, e.g. to refine ``intervals``),
+    side (``seed``; ``init`` an earlier result to warm-start from, e.g. to refine ``intervals``, or
+    ``mesh`` from :func:`jaxquat.refine_mesh` to refine near the switches),
     each converged to a KKT error of 1e-9; returns a :class:`jaxquat.ConstrainedReorientation`
     (``time``, ``ts``, ``q``, ``omega``, ``torque``, ``controls``, ``violation``, ``switching``,
     ``start_costs``, ...). Also takes ``rate_bound`` (``|w_i| <= rate_bound``), ``keep_out`` and
@@ -363,6 +365,8 @@ def minimum_time_reorientation(
     if method not in ("interior_point", "single_shooting"):
         raise ValueError(f"argument 'method' must be 'interior_point' or 'single_shooting', got {method!r}")
     single = dict(outer=outer, inner=inner, mu=mu, tol=tol, refine=refine, progress=progress)
+    if method == "single_shooting" and mesh is not None:
+        raise ValueError("argument 'mesh' needs method='interior_point' (the default)")
     if method == "interior_point":
         given = [name for name, v in single.items() if v is not None]
         if given:
@@ -387,6 +391,7 @@ def minimum_time_reorientation(
             starts=starts,
             seed=seed,
             init=init,
+            mesh=mesh,
         )
     if rate_bound is not None or len(keep_out) > 0 or len(keep_in) > 0:
         raise ValueError(

@@ -573,6 +573,7 @@ def test_every_public_name_is_in_the_contract():
         "minimum_energy_reorientation",
         "minimum_fuel_reorientation",
         "optimal_reorientation",
+        "refine_mesh",
         # the MEKF (a filter over a time axis, with its own jit/vmap/grad tests): tests/test_mekf.py
         "FilterState",
         "FilterUpdate",

@@ -333,6 +333,9 @@ def _batched_result():
         (dict(torque_bound=np.array([1.0, 0.0, 1.0])), "torque_bound"),
         (dict(intervals=1), "intervals"),
         (dict(starts=0), "'starts' must be an int >= 1"),
+        (dict(mesh=[1.0]), "'mesh' must be a 1-D array of >= 2 positive"),
+        (dict(mesh=[1.0, -1.0, 1.0]), "'mesh' must be a 1-D array of >= 2 positive"),
+        (dict(mesh=np.ones((2, 2))), "'mesh' must be a 1-D array"),
         (dict(starts=2.0), "'starts' must be an int >= 1"),
         (dict(init=_batched_result()), "'init' must be a single \\(unbatched\\) result"),
         (dict(omega0=[100.0, 0.0, 0.0]), r"cannot resolve .* intervals \* substeps >= \d+"),
@@ -341,6 +344,11 @@ def _batched_result():
 def test_minimum_energy_bad_input_raises_naming_the_argument(kwargs, match):
     with pytest.raises(ValueError, match=match):
         jq.minimum_energy_reorientation(np.eye(3), Q0, QF, 2.0, **kwargs)
+
+
+def test_refine_mesh_of_a_batched_result_raises():
+    with pytest.raises(ValueError, match="'result' must be a single"):
+        jq.refine_mesh(_batched_result())
 
 
 def test_init_that_is_not_a_result_raises_naming_it():
