@@ -671,6 +671,30 @@ def optimal_reorientation(
     return _run(cfg, inertia, q0, qf, w0, wf, T, u_ref, w_ref, bound, rate_bound, cones, weights, fractions, options)
 
 
+_SHARED = (
+    "omega0",
+    "omegaf",
+    "torque_bound",
+    "rate_bound",
+    "keep_out",
+    "keep_in",
+    "intervals",
+    "substeps",
+    "tol",
+    "max_iter",
+    "throw",
+    "starts",
+    "seed",
+    "init",
+    "mesh",
+)
+
+
+def _shared(arguments: dict) -> dict:
+    """The arguments a single-objective wrapper passes on to :func:`optimal_reorientation` unchanged."""
+    return {name: arguments[name] for name in _SHARED}
+
+
 def minimum_energy_reorientation(
     inertia: Float[Array, "3 3"],
     q0: Float[Array, "*batch 4"],
@@ -724,21 +748,7 @@ def minimum_energy_reorientation(
         qf,
         duration=_check_duration(duration),
         energy_weight=1.0,
-        omega0=omega0,
-        omegaf=omegaf,
-        torque_bound=torque_bound,
-        rate_bound=rate_bound,
-        keep_out=keep_out,
-        keep_in=keep_in,
-        intervals=intervals,
-        substeps=substeps,
-        tol=tol,
-        max_iter=max_iter,
-        throw=throw,
-        starts=starts,
-        seed=seed,
-        init=init,
-        mesh=mesh,
+        **_shared(locals()),
     )
 
 
@@ -772,7 +782,7 @@ def minimum_fuel_reorientation(
     the l1 cost is made smooth by an epigraph variable per axis and interval
     (``|u_i| <= sigma_i <= b_i``, cost ``sum h sigma_i``). The optimum is bang-off-bang: torque
     on a bound or zero, except in the intervals that hold a switch. ``cost`` is the fuel.
-    ``starts``, ``seed`` and ``init`` as there."""
+    ``starts``, ``seed``, ``init`` and ``mesh`` as there."""
     if torque_bound is None:
         raise ValueError("argument 'torque_bound' is required for minimum fuel (the l1 optimum is impulsive)")
     return optimal_reorientation(
@@ -781,21 +791,7 @@ def minimum_fuel_reorientation(
         qf,
         duration=_check_duration(duration),
         fuel_weight=1.0,
-        omega0=omega0,
-        omegaf=omegaf,
-        torque_bound=torque_bound,
-        rate_bound=rate_bound,
-        keep_out=keep_out,
-        keep_in=keep_in,
-        intervals=intervals,
-        substeps=substeps,
-        tol=tol,
-        max_iter=max_iter,
-        throw=throw,
-        starts=starts,
-        seed=seed,
-        init=init,
-        mesh=mesh,
+        **_shared(locals()),
     )
 
 
@@ -832,19 +828,5 @@ def constrained_minimum_time(
         q0,
         qf,
         time_weight=1.0,
-        omega0=omega0,
-        omegaf=omegaf,
-        torque_bound=torque_bound,
-        rate_bound=rate_bound,
-        keep_out=keep_out,
-        keep_in=keep_in,
-        intervals=intervals,
-        substeps=substeps,
-        tol=tol,
-        max_iter=max_iter,
-        throw=throw,
-        starts=starts,
-        seed=seed,
-        init=init,
-        mesh=mesh,
+        **_shared(locals()),
     )
