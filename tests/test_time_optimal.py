@@ -274,3 +274,9 @@ def test_time_optimal_reorientation_example(tmp_path):
     saturated = int(re.search(r"^\s+10\s+\S+\s+\S+\s+(\d+) %$", text, re.M).group(1))
     assert saturated > 70, text
     assert (tmp_path / "time_optimal_reorientation.png").stat().st_size > 10_000
+    # The discrete minimum principle on the 20-interval result: every control with a non-zero
+    # switching function on its bound at -b sign(sigma) (measured 56 of 60; the rest hold switches).
+    active, total, on_bound, signs = map(
+        int, re.search(r"certificate: (\d+) of (\d+) .*; (\d+) of them on the bound, (\d+) at", text).groups()
+    )
+    assert total == 60 and active == on_bound == signs and active > 0.8 * total, text
