@@ -48,6 +48,7 @@ from jaxtyping import Float
 from . import _checks, _safe, _trig
 from .algebra import _conjugate, _multiply, _scalar_vector
 from .conversions import _from_rotvec
+from .geometry import _minimal_rotation
 from .elliptic import _agm, _am, _amplitude, _incomplete, _quarter_period, _reduced_amplitude, _rf, _sn_cn_dn
 from .inertia import _validated
 
@@ -183,8 +184,8 @@ def _general(q0: Array, w0: Array, moments: Array, t: Array, a: Array, b: Array,
         + jnp.sign(ic - ia) * (chi(phi_t, snt, cnt) - chi(theta0, sn0, cn0))
     )
     e = s[..., None] * ea
-    p0 = _minimal_rotation(moments * w0 / ell[..., None], e)
-    p_t = _minimal_rotation(moments * w_t / ell[..., None], e)
+    p0 = _minimal_rotation(e, moments * w0 / ell[..., None])  # takes the unit momentum onto e
+    p_t = _minimal_rotation(e, moments * w_t / ell[..., None])
     half = psi / 2
     sin_half, cos_half = _trig.sincos(half)
     r = _scalar_vector(cos_half, e, sin_half)
@@ -199,13 +200,6 @@ def _unit_pair(y: Array, x: Array) -> tuple[Array, Array]:
     zero = r2 == 0
     inv = jax.lax.rsqrt(jnp.where(zero, 1.0, r2))
     return jnp.where(zero, 0.0, y * inv), jnp.where(zero, 1.0, x * inv)
-
-
-def _minimal_rotation(n: Array, e: Array) -> Array:
-    """The rotation by the smallest angle taking unit ``n`` to unit ``e`` (``n . e > 0`` here)."""
-    cross = jnp.cross(n, e)
-    p = _scalar_vector(1 + _safe.dot(n, e), cross)
-    return p / jnp.sqrt(_safe.norm_sq(p))[..., None]
 
 
 @jax.jit
