@@ -61,7 +61,8 @@ class ConstrainedReorientation(NamedTuple):
     the trajectory on it, re-integrated from ``q0`` with the returned torque (not the nodes);
     ``torque`` ``(len(ts), 3)`` (the last row repeats); ``controls`` ``(N, 3)`` the torque per
     interval; ``violation`` the largest constraint violation of the NLP (defects, terminal
-    conditions, path constraints); ``cost`` the objective (the time, or ``int |u|^2 dt``);
+    conditions, path constraints); ``cost`` the objective in physical units (the time, ``int |u|^2
+    dt``, the fuel, or their weighted mix);
     ``costates`` ``(N, 7)`` the multipliers of the continuity conditions, in the NLP's scaled
     units (the discrete costates of ``(q, w)``); ``switching`` ``(N, 3)`` the discrete switching
     function ``d(costate . F)/du`` per unit torque; ``kkt_residual``; ``iterations``; ``converged``;
@@ -180,8 +181,8 @@ def _path(cfg: _Config, data: _Data, qs, ws, c, p, k):
 def _units(data: _Data) -> tuple[Array, Array]:
     """The cost terms' units ``(T_ref, T_ref sum u_ref_i^2, T_ref sum u_ref_i)`` (time, energy,
     fuel; ``T_ref`` the fixed time or the eigenaxis reference time) and the cost's unit
-    ``S = sum weight_j unit_j``: the NLP minimises ``cost / S``, each term in its unit (so a single
-    objective is its own unit, as the scaling of the variables is)."""
+    ``S = sum weight_j unit_j``: the NLP minimises ``cost / S`` (a single objective is divided by its
+    own unit, as the variables are scaled), and ``S`` times its objective is the cost."""
     units = data.duration * jnp.stack([jnp.ones_like(data.duration), jnp.sum(data.u_ref**2), jnp.sum(data.u_ref)])
     return units, jnp.sum(data.weights * units)
 
@@ -195,12 +196,12 @@ def _problem(cfg: _Config) -> ShootingProblem:
         u = data.u_ref * c[:3]
         qs, ws = held_torque_states(data.inertia, x[:4], x[4:] * data.w_ref, h, u[None], cfg.substeps)
         x_next = jnp.concatenate([qs[-1], ws[-1] / data.w_ref])
-        units, total = _units(data)
+        total = _units(data)[1]
         cost = jnp.zeros((), x.dtype)
         if cfg.energy:
-            cost = cost + data.weights[1] * units[1] / total * (h * jnp.sum(u * u) / units[1])
+            cost = cost + data.weights[1] * h * jnp.sum(u * u) / total
         if cfg.fuel:
-            cost = cost + data.weights[2] * units[2] / total * (h * jnp.sum(data.u_ref * c[3:]) / units[2])
+            cost = cost + data.weights[2] * h * jnp.sum(data.u_ref * c[3:]) / total
         return x_next, cost, _path(cfg, data, qs[1:], ws[1:], c, p, k)
 
     def terminal(xN, data):
@@ -288,19 +289,6 @@ def _controls(cfg: _Config, v, clip):
     return v
 
 
-def _cost(cfg: _Config, data: _Data, T, c):
-    """The cost in physical units: ``w_T T + w_E int |u|^2 dt + w_F int sum_i sigma_i dt`` (the
-    epigraph variables ``sigma_i = |u_i|`` at the optimum) for the scaled controls ``c``."""
-    h = T / cfg.intervals if cfg.uniform else (T * data.fractions)[:, None]
-    cost = data.weights[0] * T if cfg.min_time else jnp.zeros((), T.dtype)
-    if cfg.energy:
-        u = data.u_ref[None] * c[:, :3]
-        cost = cost + data.weights[1] * jnp.sum(h * u * u)
-    if cfg.fuel:
-        cost = cost + data.weights[2] * jnp.sum(h * data.u_ref[None] * c[:, 3:])
-    return cost
-
-
 @functools.partial(jax.jit, static_argnames=("cfg", "max_iter"))
 def _solve(data: _Data, cfg: _Config, tol, max_iter: int, keys, init=None):
     """Every start (one per row of ``keys``) solved side by side, then the best: the least cost
@@ -325,8 +313,7 @@ def _solve(data: _Data, cfg: _Config, tol, max_iter: int, keys, init=None):
         return solve_shooting(problem, x0, X, U, p, data, tol=tol, max_iter=max_iter, mu0=mu0)
 
     sols = jax.vmap(one)(keys, jnp.arange(keys.shape[0]) == 0)
-    times = data.duration * sols.p[:, 0] if cfg.min_time else jnp.broadcast_to(data.duration, sols.converged.shape)
-    costs = jax.vmap(lambda t, c: _cost(cfg, data, t, c))(times, sols.u)
+    costs = _units(data)[1] * sols.objective  # the NLP minimises cost / S: back in physical units
     start_costs = jnp.where(sols.converged, costs, jnp.inf)
     best = jnp.where(jnp.any(sols.converged), jnp.argmin(start_costs), jnp.argmin(sols.kkt))
     sol = jax.tree.map(lambda a: a[best], sols)
