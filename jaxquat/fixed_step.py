@@ -68,7 +68,10 @@ def solve_fixed_steps(
             jump = False if interval_args is None else k == 0
             return one_step(c, k, t0, h, step_args, jump), None
 
-        carry, _ = jax.lax.scan(inner, carry, jnp.arange(substeps, dtype=ts.dtype))
+        if substeps == 1:  # no scan of length 1: each transform of a scan retraces its body
+            carry, _ = inner(carry, jnp.zeros((), ts.dtype))
+        else:
+            carry, _ = jax.lax.scan(inner, carry, jnp.arange(substeps, dtype=ts.dtype))
         return carry, carry[0]
 
     _, ys = jax.lax.scan(interval, (y0, state), (ts[:-1], ts[1:], interval_args))
