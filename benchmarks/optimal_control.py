@@ -53,7 +53,9 @@ def _guess(inertia, bound, theta, n):
         w_ref,
         jnp.asarray(bound),
         jnp.asarray(jnp.inf),
-        jnp.zeros((0, 7)),
+        jnp.zeros((0, 8)),
+        jnp.asarray([1.0, 0.0, 0.0]),
+        jnp.full(n, 1.0 / n),
     )
     X, V = oc._guess(cfg, data)
     X = np.concatenate([[[1.0, 0, 0, 0, 0, 0, 0]], np.asarray(X)])

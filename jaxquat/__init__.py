@@ -58,7 +58,7 @@ from .elliptic import (
     elliprf as elliprf,
     elliprj as elliprj,
 )
-from .euler import (
+from .euler_angles import (
     from_euler as from_euler,
     to_euler as to_euler,
 )
@@ -152,7 +152,7 @@ from .rigid_body import (
     EulerParameterBody as EulerParameterBody,
     invariants as invariants,
 )
-from .simulate import (
+from .simulation import (
     Simulation as Simulation,
     simulate as simulate,
 )

@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from . import _trig
+from . import _arrays, _trig
 
 # Switch points (in s = theta**2). For sin(x)/x and cos(x) the first omitted
 # term at s = 0.02 is s**5/11! ~ 8e-17; for atan(x)/x it is s**6/13 ~ 8e-20 at
@@ -35,19 +35,6 @@ _ATAN_SWITCH = 1e-3
 _SINC = (1.0, -1.0 / 6.0, 1.0 / 120.0, -1.0 / 5040.0, 1.0 / 362880.0)
 _COS = (1.0, -1.0 / 2.0, 1.0 / 24.0, -1.0 / 720.0, 1.0 / 40320.0)
 _ATAN = (1.0, -1.0 / 3.0, 1.0 / 5.0, -1.0 / 7.0, 1.0 / 9.0, -1.0 / 11.0)
-
-
-def scalars(*xs: Array) -> tuple[Array, ...]:
-    """Per-element scalars written to memory before they are broadcast into vectors.
-
-    Left to itself XLA fuses a scalar expression (a ``sincos``, an ``atan2``) into
-    every component of the ``(..., 3)`` or ``(..., 4)`` array built from it, so the
-    polynomial is evaluated three or four times per element. An optimisation
-    barrier makes it one pass that stores the scalars and one cheap pass that
-    assembles the vectors. On CPU only (measured there; ``_trig.on_cpu``): other platforms
-    get the values as they are and XLA's own fusion.
-    """
-    return _trig.on_cpu(lambda *a: jax.lax.optimization_barrier(a), lambda *a: a, *xs)
 
 
 def _horner(s: Array, coeffs: tuple[float, ...]) -> Array:
@@ -69,7 +56,7 @@ def sinc_cos_of_sq(s: Array) -> tuple[Array, Array]:
     s_small = jnp.where(small, s, 0.0)
     x = jnp.sqrt(jnp.where(small, _TRIG_SWITCH, s))
     sin, cos = _trig.sincos(x)
-    sinc, cos = scalars(
+    sinc, cos = _arrays.scalars(
         jnp.where(small, _horner(s_small, _SINC), sin / x), jnp.where(small, _horner(s_small, _COS), cos)
     )
     return sinc, cos
@@ -88,22 +75,12 @@ def atan2_over_n(nsq: Array, w: Array) -> Array:
     x2 = jnp.where(small, nsq / (w_safe * w_safe), 0.0)
     taylor = _horner(x2, _ATAN) / w_safe
     n_safe = jnp.sqrt(jnp.where(small | (nsq <= 0), 1.0, nsq))
-    return scalars(jnp.where(small, taylor, _trig.atan2(n_safe, w) / n_safe))[0]
-
-
-def dot(a: Array, b: Array) -> Array:
-    """``sum(a * b)`` over the last axis (size 3 or 4), written out per component: XLA fuses
-    it into the surrounding expression, while a reduction over a minor axis that short
-    compiles to a slow loop on CPU."""
-    total = a[..., 0] * b[..., 0]
-    for i in range(1, a.shape[-1]):
-        total = total + a[..., i] * b[..., i]
-    return total
+    return _arrays.scalars(jnp.where(small, taylor, _trig.atan2(n_safe, w) / n_safe))[0]
 
 
 def norm_sq(x: Array, axis: int = -1) -> Array:
     """Sum of squares along ``axis``."""
-    return dot(x, x) if axis in (-1, x.ndim - 1) else jnp.sum(x * x, axis=axis)
+    return _arrays.dot(x, x) if axis in (-1, x.ndim - 1) else jnp.sum(x * x, axis=axis)
 
 
 def safe_sqrt(s: Array) -> Array:
@@ -155,11 +132,6 @@ def rescaled(q: Array) -> Array:
     bits = jax.lax.bitcast_convert_type(jax.lax.stop_gradient(big), itype)
     scale = jax.lax.bitcast_convert_type(((2 * bias) << nmant) - (bits & mask), q.dtype)
     return q * scale[..., None]
-
-
-def const_like(values, like: Array) -> Array:
-    """A constant vector broadcast to ``like``'s batch shape (explicitly, for strict rank promotion)."""
-    return jnp.broadcast_to(jnp.asarray(values, dtype=like.dtype), like.shape[:-1] + (len(values),))
 
 
 # Coefficient functions of the SO(3) Jacobians, as series in s = theta**2 (exact

@@ -14,12 +14,11 @@ from __future__ import annotations
 
 from typing import Any
 
-import jax
 import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks, _safe
+from . import _arrays, _checks, _quaternion, _safe
 
 __all__ = [
     "multiply",
@@ -38,77 +37,6 @@ __all__ = [
 ]
 
 
-def _split(q: Array):
-    return q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-
-
-def _pack(w, x, y, z) -> Array:
-    return jnp.stack([w, x, y, z], axis=-1)
-
-
-def _scaled(scale: Array, v: Array) -> Array:
-    """``scale[..., None] * v`` for ``v`` ``(..., 3)``, per component (see :func:`_scalar_vector`)."""
-    return jnp.stack([scale * v[..., 0], scale * v[..., 1], scale * v[..., 2]], axis=-1)
-
-
-def _scalar_vector(s: Array, v: Array, scale: Array | None = None) -> Array:
-    """The quaternion ``(s, scale v)`` from ``(...)``, ``(..., 3)`` and an optional ``(...)``.
-
-    Stacked from components: XLA on CPU compiles ``concatenate([s[..., None], v], -1)``
-    into a slower, branching loop. (Multiplying each component by ``scale`` separately
-    instead of ``scale[..., None] * v`` made slerp 10x slower at 10^6: keep the broadcast.)
-    """
-    if scale is not None:
-        v = scale[..., None] * v
-    return _pack(s, v[..., 0], v[..., 1], v[..., 2])
-
-
-def _permuted(x: Array, k: int) -> Array:
-    """The components of ``x`` in the orders (0123), (1032), (2301), (3210): no reversal,
-    reversal within pairs, of the pairs, of all four (cheap strided copies, unlike a gather)."""
-    if k == 0:
-        return x
-    if k == 3:
-        return x[..., ::-1]
-    pairs = x.reshape(x.shape[:-1] + (2, 2))
-    return (pairs[..., ::-1] if k == 1 else pairs[..., ::-1, :]).reshape(x.shape)
-
-
-# p q = sum_k p_k (L_k q) = sum_k q_k (R_k p), with L_k, R_k = signs * _permuted(., k). The signs
-# follow from (p0, p) (q0, q) = (p0 q0 - p.q,  p0 q + q0 p + p x q).
-_LEFT_SIGNS = ((1.0, 1.0, 1.0, 1.0), (-1.0, 1.0, -1.0, 1.0), (-1.0, 1.0, 1.0, -1.0), (-1.0, -1.0, 1.0, 1.0))
-_RIGHT_SIGNS = ((1.0, 1.0, 1.0, 1.0), (-1.0, 1.0, 1.0, -1.0), (-1.0, -1.0, 1.0, 1.0), (-1.0, 1.0, -1.0, 1.0))
-
-
-def _weighted_permutations(weights: Array, x: Array, signs) -> Array:
-    """``sum_k weights_k (signs_k * _permuted(x, k))``: linear in ``x`` through whole rows."""
-    table = jnp.asarray(signs, x.dtype).reshape((4,) + (1,) * (x.ndim - 1) + (4,))
-    terms = [weights[..., k : k + 1] * (table[k] * _permuted(x, k)) for k in range(4)]
-    return ((terms[0] + terms[1]) + terms[2]) + terms[3]  # sum()'s order
-
-
-@jax.custom_jvp
-def _multiply(p: Array, q: Array) -> Array:
-    """Hamilton product without argument checks (inputs already broadcast).
-
-    Written as ``sum_k p_k (L_k q)`` where ``L_k q`` permutes and signs the components
-    of ``q``: every term is a whole ``(..., 4)`` row, so XLA emits one vectorised loop
-    (splitting into components and stacking them back ran about 3x slower on CPU).
-    The JVP is ``p dq + dp q`` with the second term written as ``sum_k q_k (R_k dp)``,
-    so both tangents enter through permutations of whole rows, and reverse mode
-    transposes them into permutations again. (The transpose of the broadcast ``p_k``
-    would be a reduction over the minor axis, which XLA on CPU runs about 20x slower:
-    74 ms against 5.7 ms for the gradient at 10^6 in float32.)
-    """
-    return _weighted_permutations(p, q, _LEFT_SIGNS)
-
-
-@_multiply.defjvp
-def _multiply_jvp(primals, tangents):
-    (p, q), (dp, dq) = primals, tangents
-    return _multiply(p, q), _weighted_permutations(p, dq, _LEFT_SIGNS) + _weighted_permutations(q, dp, _RIGHT_SIGNS)
-
-
 def multiply(p: Float[Array, "*batch 4"], q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4"]:
     """Hamilton product ``p q``.
 
@@ -120,16 +48,12 @@ def multiply(p: Float[Array, "*batch 4"], q: Float[Array, "*batch 4"]) -> Float[
     p = _checks.quat(p, "p")
     q = _checks.quat(q, "q")
     p, q = _checks.broadcast_batch([p, q], ["p", "q"], [1, 1])
-    return _multiply(p, q)
-
-
-def _conjugate(q: Array) -> Array:
-    return jnp.stack([q[..., 0], -q[..., 1], -q[..., 2], -q[..., 3]], axis=-1)
+    return _quaternion.multiply(p, q)
 
 
 def conjugate(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4"]:
     """Conjugate ``q* = (q0, -q)``, [T] eq. (9). The inverse rotation for unit ``q``."""
-    return _conjugate(_checks.quat(q))
+    return _quaternion.conjugate(_checks.quat(q))
 
 
 def norm(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch"]:
@@ -158,7 +82,7 @@ def inverse(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4"]:
     For a zero quaternion the result is NaN (element-wise, as in :func:`normalize`).
     """
     q = _checks.quat(q)
-    return _conjugate(q) / _safe.norm_sq(q)[..., None]
+    return _quaternion.conjugate(q) / _safe.norm_sq(q)[..., None]
 
 
 def identity(shape: tuple[int, ...] | int = (), dtype: Any = None) -> Float[Array, "*shape 4"]:
@@ -178,7 +102,7 @@ def _exp(q: Array) -> Array:
     s = _safe.norm_sq(v)
     scale = jnp.exp(w)
     sinc, cos = _safe.sinc_cos_of_sq(s)
-    return _scalar_vector(scale * cos, v, scale * sinc)
+    return _quaternion.scalar_vector(scale * cos, v, scale * sinc)
 
 
 def exp(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4"]:
@@ -201,10 +125,10 @@ def _log(q: Array) -> Array:
     factor = _safe.atan2_over_n(nsq, w)
     # Real negative quaternions: log is (ln|w|, pi, 0, 0), one of infinitely many.
     real_negative = (nsq == 0) & (w < 0)
-    vec = _scaled(factor, v)
-    vec = jnp.where(real_negative[..., None], _safe.const_like([jnp.pi, 0.0, 0.0], vec), vec)
+    vec = _quaternion.scaled(factor, v)
+    vec = jnp.where(real_negative[..., None], _arrays.const_like([jnp.pi, 0.0, 0.0], vec), vec)
     scalar = 0.5 * jnp.log(qsq)
-    return _scalar_vector(scalar, vec)
+    return _quaternion.scalar_vector(scalar, vec)
 
 
 def log(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4"]:
@@ -243,7 +167,7 @@ def left_matrix(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4 4"]:
     ``[[q0, -q^T], [q, q0 I + q~]]``: Chou's "+" matrix [C] eq. (11), Schwab's
     ``Q`` [S] eq. (3), Tasora's ``[M(q)+]`` [T] eq. (20b).
     """
-    w, x, y, z = _split(_checks.quat(q))
+    w, x, y, z = _quaternion.split(_checks.quat(q))
     return jnp.stack(
         [
             jnp.stack([w, -x, -y, -z], -1),
@@ -261,7 +185,7 @@ def right_matrix(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4 4"]:
     ``[[q0, -q^T], [q, q0 I - q~]]``: Chou's "-" matrix [C] eq. (11), Schwab's
     ``Q-bar`` [S] eq. (3), Tasora's ``[M(q)-]`` [T] eq. (20c).
     """
-    w, x, y, z = _split(_checks.quat(q))
+    w, x, y, z = _quaternion.split(_checks.quat(q))
     return jnp.stack(
         [
             jnp.stack([w, -x, -y, -z], -1),
@@ -270,25 +194,6 @@ def right_matrix(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4 4"]:
             jnp.stack([z, y, -x, w], -1),
         ],
         axis=-2,
-    )
-
-
-def _rotate(q: Array, v: Array) -> Array:
-    w = q[..., 0]
-    u = q[..., 1:]
-    ux, uy, uz = u[..., 0], u[..., 1], u[..., 2]
-    vx, vy, vz = v[..., 0], v[..., 1], v[..., 2]
-    # t = 2 u x v ;  v' = v + w t + u x t
-    tx = 2.0 * (uy * vz - uz * vy)
-    ty = 2.0 * (uz * vx - ux * vz)
-    tz = 2.0 * (ux * vy - uy * vx)
-    return jnp.stack(
-        [
-            vx + w * tx + (uy * tz - uz * ty),
-            vy + w * ty + (uz * tx - ux * tz),
-            vz + w * tz + (ux * ty - uy * tx),
-        ],
-        axis=-1,
     )
 
 
@@ -303,17 +208,7 @@ def rotate(q: Float[Array, "*batch 4"], v: Float[Array, "*batch 3"]) -> Float[Ar
     q = _checks.quat(q, "q")
     v = _checks.vec3(v, "v")
     q, v = _checks.broadcast_batch([q, v], ["q", "v"], [1, 1])
-    return _rotate(q, v)
-
-
-def _canonical_sign(w, x, y, z) -> Array:
-    """+1 or -1: the sign that puts ``(w, x, y, z)`` in the canonical hemisphere."""
-    flip = (w < 0) | ((w == 0) & ((x < 0) | ((x == 0) & ((y < 0) | ((y == 0) & (z < 0))))))
-    return jnp.where(flip, -1.0, 1.0).astype(w.dtype)
-
-
-def _canonicalize(q: Array) -> Array:
-    return q * _canonical_sign(*_split(q))[..., None]
+    return _quaternion.rotate(q, v)
 
 
 def canonicalize(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4"]:
@@ -323,4 +218,4 @@ def canonicalize(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4"]:
     of ``x, y, z`` being positive, so the choice is deterministic everywhere.
     The map is piecewise ``+-identity``: its derivative is ``+-I``.
     """
-    return _canonicalize(_checks.quat(q))
+    return _quaternion.canonicalize(_checks.quat(q))

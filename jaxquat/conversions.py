@@ -2,20 +2,18 @@
 
 Rotation matrices (act on column vectors, ``v' = R v``), rotation vectors,
 axis-angle pairs and modified Rodrigues parameters (MRP). Euler angles live in
-:mod:`jaxquat.euler`.
+:mod:`jaxquat.euler_angles`.
 
 Source documents: Tasora (2016) [T], Chou (1992) [C], Schwab (2002) [S].
 """
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks, _safe, _trig
-from .algebra import _canonical_sign, _canonicalize, _scalar_vector, _scaled
+from . import _arrays, _checks, _quaternion, _rotation, _safe, _trig
 
 __all__ = [
     "to_matrix",
@@ -29,19 +27,6 @@ __all__ = [
 ]
 
 
-def _to_matrix(q: Array) -> Array:
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    xx, yy, zz = x * x, y * y, z * z
-    xy, xz, yz = x * y, x * z, y * z
-    wx, wy, wz = w * x, w * y, w * z
-    rows = [
-        [1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy)],
-        [2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx)],
-        [2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy)],
-    ]
-    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
-
-
 def to_matrix(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
     """Rotation matrix ``R(q)`` with ``rotate(q, v) == R @ v``.
 
@@ -50,102 +35,7 @@ def to_matrix(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
     the diagonal. Assumes ``|q| = 1``: for a non-unit ``q`` the result is not
     orthogonal (normalise first). ``to_matrix(q) == to_matrix(-q)``.
     """
-    return _to_matrix(_checks.quat(q))
-
-
-def _k_entries(b: Array, shift: float):
-    """Entries of Davenport's symmetric 4x4 ``K(B) = [[tr B, z^T], [z, B + B^T - tr(B) I]]`` plus ``shift * I``.
-
-    ``z = (B21 - B12, B02 - B20, B10 - B01)``. For every quaternion
-    ``q^T K(B) q = sum_ij B_ij R(q)_ij``; for a rotation matrix ``R`` itself,
-    ``K(R) + I = 4 q q^T`` (Bar-Itzhack 2000), so every column of it is
-    proportional to ``q``.
-    """
-    b00, b01, b02 = b[..., 0, 0], b[..., 0, 1], b[..., 0, 2]
-    b10, b11, b12 = b[..., 1, 0], b[..., 1, 1], b[..., 1, 2]
-    b20, b21, b22 = b[..., 2, 0], b[..., 2, 1], b[..., 2, 2]
-    diag = (
-        shift + b00 + b11 + b22,
-        shift + b00 - b11 - b22,
-        shift - b00 + b11 - b22,
-        shift - b00 - b11 + b22,
-    )
-    off = (b21 - b12, b02 - b20, b10 - b01, b01 + b10, b02 + b20, b12 + b21)
-    return diag, off
-
-
-def _k_columns(diag, off):
-    d0, d1, d2, d3 = diag
-    k01, k02, k03, k12, k13, k23 = off
-    return [
-        (d0, k01, k02, k03),
-        (k01, d1, k12, k13),
-        (k02, k12, d2, k23),
-        (k03, k13, k23, d3),
-    ]
-
-
-def _k_matrix(b: Array, shift: float = 0.0) -> Array:
-    cols = _k_columns(*_k_entries(b, shift))
-    return jnp.stack([jnp.stack(c, axis=-1) for c in cols], axis=-2)
-
-
-@jax.custom_jvp
-def _top_eigenvector_f(k: Array) -> Array:
-    _, vecs = jnp.linalg.eigh(k)
-    return _canonicalize(vecs[..., :, -1])
-
-
-@_top_eigenvector_f.defjvp
-def _top_eigenvector_jvp(primals, tangents):
-    # First-order perturbation of a simple eigenvalue's eigenvector:
-    #   dv = sum_{j != top} v_j (v_j^T dK v) / (lam_top - lam_j).
-    # Only the gaps to the top eigenvalue appear, so the lower eigenvalues may be
-    # degenerate (they are, for K of an exact rotation: 3, -1, -1, -1), where
-    # eigh's own derivative divides by zero.
-    (k,), (dk,) = primals, tangents
-    lam, vecs = jnp.linalg.eigh(k)
-    v = _canonicalize(vecs[..., :, -1])
-    sign = jnp.sum(v * vecs[..., :, -1], axis=-1, keepdims=True)
-    others = vecs[..., :, :-1] * sign[..., None]
-    gaps = lam[..., -1:] - lam[..., :-1]
-    safe_gaps = jnp.where(gaps > 0, gaps, 1.0)
-    coeff = jnp.einsum("...ij,...ik,...k->...j", others, dk, v)
-    coeff = jnp.where(gaps > 0, coeff / safe_gaps, 0.0)
-    return v, jnp.einsum("...ij,...j->...i", others, coeff)
-
-
-def _top_eigenvector(k: Array) -> Array:
-    """Canonical unit eigenvector of the largest eigenvalue of symmetric 4x4 ``k``.
-
-    Differentiated by a custom JVP that needs only the top eigenvalue to be
-    simple. LAPACK has no half-precision ``eigh``; float16/bfloat16 inputs are
-    solved in float32 and the result cast back.
-    """
-    dtype = k.dtype
-    if jnp.finfo(dtype).bits < 32:
-        k = k.astype(jnp.float32)
-    return _top_eigenvector_f(k).astype(dtype)
-
-
-def _from_matrix_shepperd(m: Array) -> Array:
-    diag, off = _k_entries(m, 1.0)
-    # Shepperd: use the column of K + I with the largest diagonal entry. That
-    # entry is >= 1 for a rotation matrix (the four sum to 4), so the
-    # normalisation never divides by a small number and every branch has
-    # finite gradients.
-    d0, d1, d2, d3 = diag
-    dmax = jnp.maximum(jnp.maximum(d0, d1), jnp.maximum(d2, d3))
-    pick0 = d0 == dmax
-    pick1 = ~pick0 & (d1 == dmax)
-    pick2 = ~pick0 & ~pick1 & (d2 == dmax)
-    col = [
-        jnp.where(pick0, c0, jnp.where(pick1, c1, jnp.where(pick2, c2, c3)))
-        for c0, c1, c2, c3 in zip(*_k_columns(diag, off))
-    ]
-    # Normalise and fix the sign on the components, then stack once: one fused loop.
-    scale = _canonical_sign(*col) / jnp.sqrt(sum(c * c for c in col))  # (lax.rsqrt is a scalar call on CPU)
-    return jnp.stack([c * scale for c in col], axis=-1)
+    return _rotation.to_matrix(_checks.quat(q))
 
 
 def from_matrix(m: Float[Array, "*batch 3 3"], *, nearest: bool = False) -> Float[Array, "*batch 4"]:
@@ -176,14 +66,7 @@ def from_matrix(m: Float[Array, "*batch 3 3"], *, nearest: bool = False) -> Floa
     ``eigh`` derivative needs only the top eigenvalue to be simple).
     """
     m = _checks.mat3(m, "m")
-    return _top_eigenvector(_k_matrix(m)) if nearest else _from_matrix_shepperd(m)
-
-
-def _to_rotvec(q: Array) -> Array:
-    q = _canonicalize(q)
-    w = q[..., 0]
-    v = q[..., 1:]
-    return _scaled(2.0 * _safe.atan2_over_n(_safe.norm_sq(v), w), v)
+    return _rotation.top_eigenvector(_rotation.k_matrix(m)) if nearest else _rotation.from_matrix_shepperd(m)
 
 
 def to_rotvec(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3"]:
@@ -197,14 +80,7 @@ def to_rotvec(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3"]:
     At exactly 180 degrees ``phi u`` and ``-phi u`` are the same rotation; the
     sign follows :func:`jaxquat.canonicalize`.
     """
-    return _to_rotvec(_safe.rescaled(_checks.quat(q)))
-
-
-def _from_rotvec(r: Array) -> Array:
-    s = 0.25 * _safe.norm_sq(r)  # (phi/2)^2
-    sinc, w = _safe.sinc_cos_of_sq(s)
-    half_sinc = 0.5 * sinc
-    return _scalar_vector(w, r, half_sinc)
+    return _rotation.to_rotvec(_safe.rescaled(_checks.quat(q)))
 
 
 def from_rotvec(r: Float[Array, "*batch 3"]) -> Float[Array, "*batch 4"]:
@@ -214,7 +90,7 @@ def from_rotvec(r: Float[Array, "*batch 3"]) -> Float[Array, "*batch 4"]:
     (Jacobian ``I/2`` on the vector part). Any ``|r|`` is accepted; angles beyond
     ``pi`` give ``w < 0``.
     """
-    return _from_rotvec(_checks.vec3(r, "r"))
+    return _rotation.from_rotvec(_checks.vec3(r, "r"))
 
 
 def to_axis_angle(q: Float[Array, "*batch 4"]) -> tuple[Float[Array, "*batch 3"], Float[Array, "*batch"]]:
@@ -226,13 +102,13 @@ def to_axis_angle(q: Float[Array, "*batch 4"]) -> tuple[Float[Array, "*batch 3"]
     ``phi = 0``, with zero gradient for ``u`` and a zero subgradient for ``phi``
     (whose true derivative there does not exist: ``phi = 2|v|`` is a cone).
     """
-    q = _canonicalize(_safe.rescaled(_checks.quat(q)))
+    q = _quaternion.canonicalize(_safe.rescaled(_checks.quat(q)))
     w = q[..., 0]
     v = q[..., 1:]
     n = _safe.safe_norm(v)
     angle = 2.0 * _trig.atan2(n, w)
     zero = n == 0
-    axis = jnp.where(zero[..., None], _safe.const_like([1.0, 0.0, 0.0], v), v / jnp.where(zero, 1.0, n)[..., None])
+    axis = jnp.where(zero[..., None], _arrays.const_like([1.0, 0.0, 0.0], v), v / jnp.where(zero, 1.0, n)[..., None])
     return axis, angle
 
 
@@ -251,7 +127,7 @@ def from_axis_angle(axis: Float[Array, "*batch 3"], angle: Float[Array, "*batch"
     unit = axis / jnp.sqrt(jnp.where(nsq > 0, nsq, 1.0))[..., None]
     half = 0.5 * angle
     s, c = _trig.sincos(half)
-    return jnp.where(((nsq == 0) & (angle != 0))[..., None], jnp.nan, _scalar_vector(c, unit, s))
+    return jnp.where(((nsq == 0) & (angle != 0))[..., None], jnp.nan, _quaternion.scalar_vector(c, unit, s))
 
 
 def to_mrp(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3"]:
@@ -262,7 +138,7 @@ def to_mrp(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3"]:
     ``|q| + w`` instead of ``1 + w`` makes it scale-invariant. Smooth everywhere
     except the 180-degree hemisphere switch.
     """
-    q = _canonicalize(_safe.rescaled(_checks.quat(q)))
+    q = _quaternion.canonicalize(_safe.rescaled(_checks.quat(q)))
     w = q[..., 0]
     n = jnp.sqrt(_safe.norm_sq(q))
     return q[..., 1:] / (n + w)[..., None]
@@ -276,4 +152,4 @@ def from_mrp(p: Float[Array, "*batch 3"]) -> Float[Array, "*batch 4"]:
     p = _checks.vec3(p, "p")
     psq = _safe.norm_sq(p)
     denom = 1.0 + psq
-    return _scalar_vector((1.0 - psq) / denom, p, 2.0 / denom)
+    return _quaternion.scalar_vector((1.0 - psq) / denom, p, 2.0 / denom)

@@ -18,9 +18,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks, _safe
-from .algebra import _canonicalize
-from .conversions import _from_matrix_shepperd, _k_matrix
+from . import _checks, _quaternion, _rotation, _safe
 
 __all__ = ["triad", "quest", "attitude_covariance"]
 
@@ -58,7 +56,7 @@ def triad(
     vs = [_checks.vec3(v, n) for v, n in zip((b1, b2, r1, r2), names)]
     b1, b2, r1, r2 = _checks.broadcast_batch(vs, names, [1, 1, 1, 1])
     m = jnp.einsum("...ik,...jk->...ij", _frame(r1, r2), _frame(b1, b2))
-    return _from_matrix_shepperd(m)
+    return _rotation.from_matrix_shepperd(m)
 
 
 def _adjugate(m: Array) -> list[list[Array]]:
@@ -84,7 +82,7 @@ def _best_column(adj: list[list[Array]]) -> Array:
     best = jnp.argmax(jnp.stack([jnp.abs(adj[i][i]) for i in range(4)], axis=-1), axis=-1)
     cols = jnp.stack([jnp.stack([adj[r][c] for r in range(4)], axis=-1) for c in range(4)], axis=-2)
     col = jnp.take_along_axis(cols, best[..., None, None], axis=-2)[..., 0, :]
-    return _canonicalize(_unit(col))
+    return _quaternion.canonicalize(_unit(col))
 
 
 def _shifted(k: Array, lam: Array) -> Array:
@@ -194,7 +192,7 @@ def _quest(b: Array, r: Array, w: Array) -> Array:
     b, r, w = b.astype(work), r.astype(work), w.astype(work)
     bmat = jnp.einsum("...n,...ni,...nj->...ij", w, r, b)
     lam0 = jnp.sum(w * jnp.sqrt(_safe.norm_sq(r) * _safe.norm_sq(b)), axis=-1)
-    return _quest_kernel(_k_matrix(bmat), lam0).astype(dtype)
+    return _quest_kernel(_rotation.k_matrix(bmat), lam0).astype(dtype)
 
 
 def attitude_covariance(

@@ -22,19 +22,8 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks, _safe
-from .algebra import _multiply
-from .inertia import _solve, _validated
-from .skew import _matvec
-from .kinematics import (
-    _alpha_from_qddot,
-    _from_body,
-    _omega_from_qdot,
-    _pure,
-    _qddot_from_alpha,
-    _to_body,
-    _vec_rate,
-)
+from . import _arrays, _checks, _quaternion, _rates
+from .inertia import validated
 
 __all__ = [
     "angular_momentum",
@@ -57,7 +46,7 @@ def _args(q, vectors: dict, inertia, quats: dict | None = None):
     arrays = [_checks.quat(q, "q")]
     arrays += [_checks.quat(v, n) for n, v in (quats or {}).items()]
     arrays += [_checks.vec3(v, n) for n, v in vectors.items()]
-    arrays.append(_validated(inertia))
+    arrays.append(validated(inertia))
     cores = [1] * (len(arrays) - 1) + [2]
     return _checks.broadcast_batch(arrays, names, cores)
 
@@ -66,14 +55,9 @@ def _torque_or_zero(torque, like) -> Array:
     return jnp.zeros(jnp.shape(like)[:-1] + (3,), dtype=jnp.result_type(like)) if torque is None else torque
 
 
-def _euler_body(inertia: Array, w: Array, torque: Array) -> Array:
-    """Euler's equations solved for the acceleration, ``I^-1 (M - w x I w)``, all body frame."""
-    return _solve(inertia, torque - jnp.cross(w, _matvec(inertia, w)))
-
-
 def _euler_torque_body(inertia: Array, w: Array, alpha: Array) -> Array:
     """Euler's equations solved for the torque, ``I a + w x I w``, all body frame."""
-    return _matvec(inertia, alpha) + jnp.cross(w, _matvec(inertia, w))
+    return _arrays.matvec(inertia, alpha) + jnp.cross(w, _arrays.matvec(inertia, w))
 
 
 def angular_momentum(
@@ -90,8 +74,8 @@ def angular_momentum(
     """
     frame = _checks.frame(frame)
     q, omega, inertia = _args(q, {"omega": omega}, inertia)
-    h = _matvec(inertia, _to_body(q, omega, frame))
-    return _from_body(q, h, frame)
+    h = _arrays.matvec(inertia, _rates.to_body(q, omega, frame))
+    return _rates.from_body(q, h, frame)
 
 
 def kinetic_energy(
@@ -107,13 +91,8 @@ def kinetic_energy(
     """
     frame = _checks.frame(frame)
     q, omega, inertia = _args(q, {"omega": omega}, inertia)
-    w = _to_body(q, omega, frame)
-    return _kinetic_energy(w, _matvec(inertia, w))
-
-
-def _kinetic_energy(w: Array, h: Array) -> Array:
-    """``1/2 w . h`` from the body rate and the body angular momentum ``h = I w``."""
-    return 0.5 * _safe.dot(w, h)
+    w = _rates.to_body(q, omega, frame)
+    return _rates.kinetic_energy(w, _arrays.matvec(inertia, w))
 
 
 def angular_acceleration(
@@ -133,9 +112,9 @@ def angular_acceleration(
     frame = _checks.frame(frame)
     torque = _torque_or_zero(torque, omega)
     q, omega, torque, inertia = _args(q, {"omega": omega, "torque": torque}, inertia)
-    w = _to_body(q, omega, frame)
-    m = _to_body(q, torque, frame)
-    return _from_body(q, _euler_body(inertia, w, m), frame)
+    w = _rates.to_body(q, omega, frame)
+    m = _rates.to_body(q, torque, frame)
+    return _rates.from_body(q, _rates.euler_body(inertia, w, m), frame)
 
 
 def inverse_dynamics(
@@ -149,9 +128,9 @@ def inverse_dynamics(
     [C] eq. (66)); ``M_s = I0 a_s + w_s x I0 w_s`` in space ([C] eq. (62))."""
     frame = _checks.frame(frame)
     q, omega, alpha, inertia = _args(q, {"omega": omega, "alpha": alpha}, inertia)
-    w = _to_body(q, omega, frame)
-    a = _to_body(q, alpha, frame)
-    return _from_body(q, _euler_torque_body(inertia, w, a), frame)
+    w = _rates.to_body(q, omega, frame)
+    a = _rates.to_body(q, alpha, frame)
+    return _rates.from_body(q, _euler_torque_body(inertia, w, a), frame)
 
 
 def euler_parameter_acceleration(
@@ -181,9 +160,9 @@ def euler_parameter_acceleration(
     frame = _checks.frame(frame)
     torque = _torque_or_zero(torque, qdot)
     q, qdot, torque, inertia = _args(q, {"torque": torque}, inertia, {"qdot": qdot})
-    w = _omega_from_qdot(q, qdot, "body")
-    a = _euler_body(inertia, w, _to_body(q, torque, frame))
-    return _qddot_from_alpha(q, qdot, a, "body")
+    w = _rates.omega_from_qdot(q, qdot, "body")
+    a = _rates.euler_body(inertia, w, _rates.to_body(q, torque, frame))
+    return _rates.qddot_from_alpha(q, qdot, a, "body")
 
 
 def euler_parameter_torque(
@@ -202,9 +181,9 @@ def euler_parameter_torque(
     """
     frame = _checks.frame(frame)
     q, qdot, qddot, inertia = _args(q, {}, inertia, {"qdot": qdot, "qddot": qddot})
-    w = _omega_from_qdot(q, qdot, "body")
-    a = _alpha_from_qddot(q, qdot, qddot, "body")
-    return _from_body(q, _euler_torque_body(inertia, w, a), frame)
+    w = _rates.omega_from_qdot(q, qdot, "body")
+    a = _rates.alpha_from_qddot(q, qdot, qddot, "body")
+    return _rates.from_body(q, _euler_torque_body(inertia, w, a), frame)
 
 
 def _quat_inertia_product(q: Array, inertia: Array) -> Array:
@@ -242,8 +221,8 @@ def generalized_force(
     q = _checks.quat(q)
     torque = _checks.vec3(torque, "torque")
     q, torque = _checks.broadcast_batch([q, torque], ["q", "torque"], [1, 1])
-    m = _pure(torque)
-    return 2.0 * (_multiply(q, m) if frame == "body" else _multiply(m, q))
+    m = _quaternion.pure(torque)
+    return 2.0 * (_quaternion.multiply(q, m) if frame == "body" else _quaternion.multiply(m, q))
 
 
 def torque_from_generalized_force(
@@ -259,7 +238,7 @@ def torque_from_generalized_force(
     q = _checks.quat(q)
     force = _checks.quat(force, "force")
     q, force = _checks.broadcast_batch([q, force], ["q", "force"], [1, 1])
-    return 0.5 * _vec_rate(q, force, frame)
+    return 0.5 * _rates.vec_rate(q, force, frame)
 
 
 def euler_parameter_augmented_system(
@@ -289,8 +268,8 @@ def euler_parameter_augmented_system(
     q, qdot, torque, inertia = _args(q, {"torque": torque}, inertia, {"qdot": qdot})
     mass = 4.0 * _quat_inertia_product(q, inertia)
     gyro = 8.0 * _quat_inertia_product(qdot, inertia) @ q[..., None]
-    m = _pure(_to_body(q, torque, frame))
-    top_rhs = 2.0 * _multiply(q, m) + gyro[..., 0]
+    m = _quaternion.pure(_rates.to_body(q, torque, frame))
+    top_rhs = 2.0 * _quaternion.multiply(q, m) + gyro[..., 0]
     rhs = jnp.concatenate([top_rhs, -2.0 * jnp.sum(qdot * qdot, -1, keepdims=True)], axis=-1)
     col = 2.0 * q[..., :, None]
     upper = jnp.concatenate([mass, col], axis=-1)
@@ -307,5 +286,5 @@ def norm_constraint_multiplier(
     rotational kinetic energy.
     """
     q, qdot, inertia = _args(q, {}, inertia, {"qdot": qdot})
-    w = _omega_from_qdot(q, qdot, "body")
-    return _safe.dot(w, _matvec(inertia, w))
+    w = _rates.omega_from_qdot(q, qdot, "body")
+    return _arrays.dot(w, _arrays.matvec(inertia, w))

@@ -44,7 +44,7 @@ def _tiny(x: Array) -> Array:
     return jnp.asarray(jnp.finfo(x.dtype).tiny, x.dtype)
 
 
-def _agm(m: Array, mc: Array) -> tuple[Array, Array]:
+def agm(m: Array, mc: Array) -> tuple[Array, Array]:
     """``(a_n, b_n, c_n)`` for ``n = 1..N`` (stacked on a new leading axis) of the AGM of
     ``(1, sqrt(mc))``, and ``a_N``."""
     b0 = jnp.sqrt(jnp.maximum(mc, _tiny(mc)))
@@ -61,7 +61,7 @@ def _agm(m: Array, mc: Array) -> tuple[Array, Array]:
     return steps, last[0]
 
 
-def _amplitude(u: Array, steps: Array, a_last: Array) -> Array:
+def amplitude(u: Array, steps: Array, a_last: Array) -> Array:
     """The Jacobi amplitude ``am(u | m)`` (unwrapped: it grows with ``u``) by the Landen recurrence.
 
     The textbook step ``phi <- (phi + asin((c_n/a_n) sin phi)) / 2`` loses half the
@@ -81,14 +81,14 @@ def _amplitude(u: Array, steps: Array, a_last: Array) -> Array:
     return phi
 
 
-def _sn_cn_dn(phi: Array, m: Array, mc: Array) -> tuple[Array, Array, Array]:
+def sn_cn_dn(phi: Array, m: Array, mc: Array) -> tuple[Array, Array, Array]:
     """``sn, cn, dn`` from the amplitude ``phi = am(u | m)``."""
     sn, cn = _trig.sincos(phi)
     return sn, cn, jnp.sqrt(mc + m * cn * cn)  # dn = sqrt(1 - m sn^2), no cancellation near m = 1
 
 
 @jax.custom_jvp
-def _am(u: Array, m: Array, mc: Array) -> Array:
+def am(u: Array, m: Array, mc: Array) -> Array:
     """The unwrapped amplitude ``am(u | m)``; ``mc = 1 - m`` given separately for accuracy near ``m = 1``.
 
     Differentiating the AGM/Landen loop loses the derivative in ``m`` as ``m -> 1``
@@ -101,15 +101,15 @@ def _am(u: Array, m: Array, mc: Array) -> Array:
     exactly, so it is regular at ``m = 1`` (and at ``m = 0``). The tangent of ``mc``
     is not used: callers pass ``mc = 1 - m`` analytically.
     """
-    steps, a_last = _agm(m, mc)
-    return _amplitude(u, steps, a_last)
+    steps, a_last = agm(m, mc)
+    return amplitude(u, steps, a_last)
 
 
-@_am.defjvp
+@am.defjvp
 def _am_jvp(primals, tangents):
     u, m, mc = primals
     du, dm, _ = tangents
-    phi = _am(u, m, mc)
+    phi = am(u, m, mc)
     j = jnp.round(phi / jnp.pi)
     s, c = _trig.sincos(phi - j * jnp.pi)
     dn = jnp.sqrt(jnp.maximum(mc + m * c * c, 0.0))
@@ -126,13 +126,13 @@ def _am_jvp(primals, tangents):
 
 def _jacobi(u: Array, m: Array, mc: Array) -> tuple[Array, Array, Array, Array]:
     """``sn, cn, dn, am`` with the complementary parameter ``mc = 1 - m`` given separately."""
-    phi = _am(u, m, mc)
-    return (*_sn_cn_dn(phi, m, mc), phi)
+    phi = am(u, m, mc)
+    return (*sn_cn_dn(phi, m, mc), phi)
 
 
-def _quarter_period(m: Array, mc: Array) -> Array:
+def quarter_period(m: Array, mc: Array) -> Array:
     """``K(m) = pi / (2 AGM(1, sqrt(1 - m)))``."""
-    _, a_last = _agm(m, mc)
+    _, a_last = agm(m, mc)
     return jnp.pi / (2 * a_last)
 
 
@@ -168,7 +168,7 @@ def _ellipj(u: Array, m: Array) -> tuple[Array, ...]:
 
 @jax.jit
 def _ellipk(m: Array) -> Array:
-    return jnp.where(m > 1, jnp.nan, _quarter_period(m, 1 - m))
+    return jnp.where(m > 1, jnp.nan, quarter_period(m, 1 - m))
 
 
 def ellipk(m: Float[Array, "*batch"]) -> Array:
@@ -188,7 +188,7 @@ def _duplicate(x: Array, y: Array, z: Array) -> tuple[Array, Array, Array, Array
     return sx, sy, sz, sx * sy + sy * sz + sz * sx
 
 
-def _rf(x: Array, y: Array, z: Array) -> Array:
+def rf(x: Array, y: Array, z: Array) -> Array:
     def step(_, xyz):
         *_, lam = _duplicate(*xyz)
         return tuple((v + lam) / 4 for v in xyz)
@@ -264,17 +264,17 @@ def elliprj(
     return _compiled_rj(*args).astype(dtype)
 
 
-_compiled_rf, _compiled_rj = jax.jit(_rf), jax.jit(_rj)
+_compiled_rf, _compiled_rj = jax.jit(rf), jax.jit(_rj)
 
 
-def _reduced_amplitude(sn: Array, cn: Array) -> tuple[Array, Array, Array]:
+def reduced_amplitude(sn: Array, cn: Array) -> tuple[Array, Array, Array]:
     """``(h, sin r, cos r)`` with ``atan2(sn, cn) = h pi + r``, ``|r| <= pi/2`` (``h`` in -1, 0, 1)."""
     back = cn < 0
     h = jnp.where(back, jnp.where(sn < 0, -1.0, 1.0), 0.0).astype(sn.dtype)
     return h, jnp.where(back, -sn, sn), jnp.abs(cn)
 
 
-def _incomplete(j: Array, s: Array, c: Array, m: Array, mc: Array, n: Array) -> tuple[Array, Array]:
+def incomplete(j: Array, s: Array, c: Array, m: Array, mc: Array, n: Array) -> tuple[Array, Array]:
     """``F(phi | m)`` and ``Pi(n; phi | m)`` at the unwrapped amplitude ``phi = j pi + r``.
 
     The amplitude comes as the integer ``j`` and ``sin r = s``, ``cos r = c >= 0``
@@ -297,10 +297,10 @@ def _incomplete(j: Array, s: Array, c: Array, m: Array, mc: Array, n: Array) -> 
     x = jnp.concatenate([c2, jnp.full_like(c2[:1], _tiny(c2))])
     y = jnp.concatenate([jnp.maximum(mc + m * c2, 0.0), mc_full])
     p = jnp.concatenate([1 - n * s2, 1 - n])
-    rf = _rf(x, y, jnp.ones_like(x))
-    rj = _rj(x, y, jnp.ones_like(x), p)
-    f_part = s * rf[:-1]
-    pi_part = f_part + n / 3 * s * s2 * rj[:-1]
-    f_full = rf[-1:]
-    pi_full = f_full + n / 3 * rj[-1:]
+    r_f = rf(x, y, jnp.ones_like(x))
+    r_j = _rj(x, y, jnp.ones_like(x), p)
+    f_part = s * r_f[:-1]
+    pi_part = f_part + n / 3 * s * s2 * r_j[:-1]
+    f_full = r_f[-1:]
+    pi_full = f_full + n / 3 * r_j[-1:]
     return 2 * j * f_full + f_part, 2 * j * pi_full + pi_part

@@ -9,9 +9,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks, _safe, _trig
-from .algebra import _canonicalize, _conjugate, _multiply, _scalar_vector
-from .conversions import _k_matrix, _top_eigenvector
+from . import _checks, _quaternion, _rotation, _safe, _trig
 
 __all__ = ["angle", "angle_between", "mean", "align_vectors", "random"]
 
@@ -39,7 +37,7 @@ def angle_between(p: Float[Array, "*batch 4"], q: Float[Array, "*batch 4"]) -> F
     p = _checks.quat(p, "p")
     q = _checks.quat(q, "q")
     p, q = _checks.broadcast_batch([p, q], ["p", "q"], [1, 1])
-    return _angle(_multiply(_conjugate(p), q))
+    return _angle(_quaternion.multiply(_quaternion.conjugate(p), q))
 
 
 def mean(q: Float[Array, "*batch n 4"], weights: Float[Array, "*batch n"] | None = None) -> Float[Array, "*batch 4"]:
@@ -64,11 +62,11 @@ def mean(q: Float[Array, "*batch n 4"], weights: Float[Array, "*batch n"] | None
         )
     _checks.nonempty(q, "q", -2, "rotation to average (n >= 1 in (..., n, 4))")
     if weights is None:
-        return _top_eigenvector(jnp.einsum("...ni,...nj->...ij", q, q))
+        return _rotation.top_eigenvector(jnp.einsum("...ni,...nj->...ij", q, q))
     weights = _checks.weights(_checks.per_item(weights, "weights", q, "q"))
     q, weights = _checks.broadcast_batch([q, weights], ["q", "weights"], [2, 1])
     m = jnp.einsum("...n,...ni,...nj->...ij", weights, q, q)
-    return _nan_where(~_valid_weights(weights), _top_eigenvector(m))
+    return _nan_where(~_valid_weights(weights), _rotation.top_eigenvector(m))
 
 
 def _valid_weights(weights: Array) -> Array:
@@ -80,21 +78,6 @@ def _valid_weights(weights: Array) -> Array:
 def _nan_where(bad: Array, q: Array) -> Array:
     """NaN in every component of the elements where ``bad`` (the others untouched)."""
     return jnp.where(bad[..., None], jnp.nan, q)
-
-
-def _minimal_rotation(a: Array, b: Array) -> Array:
-    """Smallest rotation taking the direction of ``b`` onto that of ``a``."""
-    na = jnp.sqrt(_safe.norm_sq(a))
-    nb = jnp.sqrt(_safe.norm_sq(b))
-    w = na * nb + _safe.dot(a, b)
-    v = jnp.cross(b, a)
-    # Antiparallel: any axis perpendicular to b, rotation by pi.
-    anti = w <= 1e3 * jnp.finfo(a.dtype).eps * na * nb
-    pick_x = jnp.abs(b[..., 0]) <= jnp.maximum(jnp.abs(b[..., 1]), jnp.abs(b[..., 2]))
-    helper = jnp.where(pick_x[..., None], _safe.const_like([1.0, 0.0, 0.0], b), _safe.const_like([0.0, 1.0, 0.0], b))
-    perp = jnp.cross(b, helper)
-    q = jnp.where(anti[..., None], _scalar_vector(jnp.zeros_like(w), perp), _scalar_vector(w, v))
-    return _canonicalize(q / jnp.sqrt(_safe.norm_sq(q))[..., None])
 
 
 def align_vectors(
@@ -145,10 +128,10 @@ def align_vectors(
         )
     if a.shape[-2] == 1:
         degenerate = (_safe.norm_sq(a[..., 0, :]) == 0) | (_safe.norm_sq(b[..., 0, :]) == 0)
-        return _nan_where(bad | degenerate, _minimal_rotation(a[..., 0, :], b[..., 0, :]))
+        return _nan_where(bad | degenerate, _rotation.minimal_rotation(a[..., 0, :], b[..., 0, :]))
     bmat = jnp.einsum("...n,...ni,...nj->...ij", weights, a, b)
-    k = _k_matrix(bmat)
-    q = _nan_where(bad | jnp.all(bmat == 0, axis=(-2, -1)), _top_eigenvector(k))
+    k = _rotation.k_matrix(bmat)
+    q = _nan_where(bad | jnp.all(bmat == 0, axis=(-2, -1)), _rotation.top_eigenvector(k))
     if not return_sensitivity:
         return q
     return q, _sensitivity(k, q, bmat, weights)

@@ -24,9 +24,7 @@ import numpy as np
 from jax import Array
 from jaxtyping import Bool, Float
 
-from . import _checks
-from .conversions import _from_matrix_shepperd, _to_matrix
-from .skew import _hat
+from . import _arrays, _checks, _rotation
 
 __all__ = [
     "inertia_from_points",
@@ -67,7 +65,7 @@ def rotate_inertia(q: Float[Array, "*batch 4"], inertia: Float[Array, "*batch 3 
     q = _checks.quat(q)
     inertia = _checks.inertia(inertia)
     q, inertia = _checks.broadcast_batch([q, inertia], ["q", "inertia"], [1, 2])
-    a = _to_matrix(q)
+    a = _rotation.to_matrix(q)
     return a @ inertia @ jnp.swapaxes(a, -1, -2)
 
 
@@ -78,7 +76,7 @@ def inertia_rate(
     i0 = _checks.inertia(inertia_space, "inertia_space")
     w = _checks.vec3(omega_space, "omega_space")
     i0, w = _checks.broadcast_batch([i0, w], ["inertia_space", "omega_space"], [2, 1])
-    wh = _hat(w)
+    wh = _arrays.hat(w)
     return wh @ i0 - i0 @ wh
 
 
@@ -181,30 +179,12 @@ def check_inertia(inertia: Any, name: str = "inertia", rtol: float | None = None
     )
 
 
-def _validated(inertia: Any, name: str = "inertia") -> Array:
+def validated(inertia: Any, name: str = "inertia") -> Array:
     """Shape check always; value check when the values are concrete (eager calls)."""
     arr = _checks.inertia(inertia, name)
     if not _checks.is_traced(arr):
         check_inertia(arr, name)
     return arr
-
-
-def _solve(inertia: Array, b: Array) -> Array:
-    """``I^-1 b`` for symmetric ``I`` by the adjugate (element-wise, so it fuses; no LAPACK call)."""
-    m00, m01, m02 = inertia[..., 0, 0], inertia[..., 0, 1], inertia[..., 0, 2]
-    m11, m12, m22 = inertia[..., 1, 1], inertia[..., 1, 2], inertia[..., 2, 2]
-    c00 = m11 * m22 - m12 * m12
-    c01 = m02 * m12 - m01 * m22
-    c02 = m01 * m12 - m02 * m11
-    c11 = m00 * m22 - m02 * m02
-    c12 = m01 * m02 - m00 * m12
-    c22 = m00 * m11 - m01 * m01
-    det = m00 * c00 + m01 * c01 + m02 * c02
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return (
-        jnp.stack([c00 * b0 + c01 * b1 + c02 * b2, c01 * b0 + c11 * b1 + c12 * b2, c02 * b0 + c12 * b1 + c22 * b2], -1)
-        / det[..., None]
-    )
 
 
 def principal_axes(inertia: Float[Array, "*batch 3 3"]) -> tuple[Float[Array, "*batch 3"], Float[Array, "*batch 4"]]:
@@ -218,9 +198,9 @@ def principal_axes(inertia: Float[Array, "*batch 3 3"]) -> tuple[Float[Array, "*
     equal (a symmetric top): differentiate with respect to the principal
     moments there instead. Chou (1992) eq. (C1) is the inverse map.
     """
-    inertia = _validated(inertia)
+    inertia = validated(inertia)
     dtype = inertia.dtype
     moments, vectors = jnp.linalg.eigh(inertia.astype(_checks.working_dtype(dtype)))
     det = jnp.linalg.det(vectors)
     vectors = vectors.at[..., :, 2].multiply(jnp.sign(det)[..., None])
-    return moments.astype(dtype), _from_matrix_shepperd(vectors).astype(dtype)
+    return moments.astype(dtype), _rotation.from_matrix_shepperd(vectors).astype(dtype)

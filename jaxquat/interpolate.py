@@ -10,9 +10,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks, _safe
-from .algebra import _conjugate, _multiply, _scalar_vector
-from .conversions import _from_rotvec, _to_rotvec
+from . import _checks, _quaternion, _rotation
 
 __all__ = ["slerp", "squad", "squad_control_points", "squad_segment"]
 
@@ -34,35 +32,15 @@ def slerp(
     q = _checks.quat(q, "q")
     t = _checks.scalar_like(t, "t")
     p, q, t = _checks.broadcast_batch([p, q, t], ["p", "q", "t"], [1, 1, 0])
-    return _slerp(p, q, t)
-
-
-def _slerp(p: Array, q: Array, t: Array) -> Array:
-    q = jnp.where((_safe.dot(p, q) < 0)[..., None], -q, q)
-    r = _multiply(_conjugate(p), q)
-    w, v = r[..., 0], r[..., 1:]
-    nsq = _safe.norm_sq(v)
-    scale = t * _safe.atan2_over_n(nsq, w)  # t * (half angle) / |v|
-    usq = scale * scale * nsq
-    sinc, cos = _safe.sinc_cos_of_sq(usq)
-    step = _scalar_vector(cos, v, scale * sinc)
-    return _multiply(p, step)
-
-
-def _align_signs(keys: Array) -> Array:
-    """Flip keys ``(..., n, 4)`` so that consecutive ones have a non-negative dot product."""
-    dots = jnp.sum(keys[..., 1:, :] * keys[..., :-1, :], axis=-1)
-    steps = jnp.where(dots < 0, -1.0, 1.0).astype(keys.dtype)
-    signs = jnp.concatenate([jnp.ones_like(steps[..., :1]), jnp.cumprod(steps, axis=-1)], axis=-1)
-    return keys * signs[..., None]
+    return _rotation.slerp(p, q, t)
 
 
 def _control_points(keys: Array) -> Array:
     q = keys[..., 1:-1, :]
-    qc = _conjugate(q)
-    r_next = _to_rotvec(_multiply(qc, keys[..., 2:, :]))
-    r_prev = _to_rotvec(_multiply(qc, keys[..., :-2, :]))
-    inner = _multiply(q, _from_rotvec(-0.25 * (r_next + r_prev)))
+    qc = _quaternion.conjugate(q)
+    r_next = _rotation.to_rotvec(_quaternion.multiply(qc, keys[..., 2:, :]))
+    r_prev = _rotation.to_rotvec(_quaternion.multiply(qc, keys[..., :-2, :]))
+    inner = _quaternion.multiply(q, _rotation.from_rotvec(-0.25 * (r_next + r_prev)))
     return jnp.concatenate([keys[..., :1, :], inner, keys[..., -1:, :]], axis=-2)
 
 
@@ -84,7 +62,7 @@ def _aligned_keys_and_controls(keys: Array) -> tuple[Array, Array]:
     """Sign-aligned keys ``(..., n, 4)``, ``n >= 2``, and their squad control points."""
     if keys.ndim < 2 or keys.shape[-2] < 2:
         raise ValueError(f"argument 'keys' must be shaped (..., n, 4) with n >= 2, got shape {tuple(keys.shape)}")
-    aligned = _align_signs(keys)
+    aligned = _rotation.align_signs(keys)
     return aligned, aligned if keys.shape[-2] == 2 else _control_points(aligned)
 
 
@@ -104,7 +82,7 @@ def squad_segment(
 
 @jax.jit
 def _squad_segment(q0: Array, q1: Array, s0: Array, s1: Array, h: Array) -> Array:
-    return _slerp(_slerp(q0, q1, h), _slerp(s0, s1, h), 2 * h * (1 - h))
+    return _rotation.slerp(_rotation.slerp(q0, q1, h), _rotation.slerp(s0, s1, h), 2 * h * (1 - h))
 
 
 def squad(keys: Float[Array, "n 4"], u: Float[Array, "*shape"] | float) -> Float[Array, "*shape 4"]:

@@ -27,10 +27,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks, _safe
-from .algebra import _conjugate, _multiply, _rotate, _scalar_vector
-from .conversions import _to_matrix
-from .skew import _hat
+from . import _arrays, _checks, _quaternion, _rates, _rotation
 
 __all__ = [
     "rate_matrix",
@@ -43,43 +40,6 @@ __all__ = [
     "point_velocity",
     "point_acceleration",
 ]
-
-
-def _pure(v: Array) -> Array:
-    """The pure quaternion ``(0, v)``."""
-    return _scalar_vector(jnp.zeros_like(v[..., 0]), v)
-
-
-def _vec_rate(q: Array, qdot: Array, frame: str) -> Array:
-    """``vec(q* qdot)`` (body) or ``vec(qdot q*)`` (space): half the angular velocity times ``|q|^2``."""
-    prod = _multiply(_conjugate(q), qdot) if frame == "body" else _multiply(qdot, _conjugate(q))
-    return prod[..., 1:]
-
-
-def _qdot_from_omega(q: Array, omega: Array, frame: str) -> Array:
-    w = _pure(omega)
-    return 0.5 * (_multiply(q, w) if frame == "body" else _multiply(w, q))
-
-
-def _omega_from_qdot(q: Array, qdot: Array, frame: str) -> Array:
-    return 2.0 * _vec_rate(q, qdot, frame) / _safe.dot(q, q)[..., None]
-
-
-def _qddot_from_alpha(q: Array, qdot: Array, alpha: Array, frame: str) -> Array:
-    nsq = _safe.dot(q, q)[..., None]
-    rate = _vec_rate(q, qdot, frame)
-    # s = q* qddot (body) or qddot q* (space), solved from the alpha relation;
-    # its scalar part q.qddot = -|qdot|^2 keeps d^2|q|^2/dt^2 = 0.
-    s_vec = 0.5 * nsq * alpha + 2.0 * _safe.dot(q, qdot)[..., None] * rate / nsq
-    s = _scalar_vector(-_safe.dot(qdot, qdot), s_vec)
-    return (_multiply(q, s) if frame == "body" else _multiply(s, q)) / nsq
-
-
-def _alpha_from_qddot(q: Array, qdot: Array, qddot: Array, frame: str) -> Array:
-    nsq = _safe.dot(q, q)[..., None]
-    acc = _vec_rate(q, qddot, frame)
-    rate = _vec_rate(q, qdot, frame)
-    return 2.0 * acc / nsq - 4.0 * _safe.dot(q, qdot)[..., None] * rate / (nsq * nsq)
 
 
 def _prepare(arrays, names, kinds):
@@ -104,7 +64,7 @@ def rate_matrix(q: Float[Array, "*batch 4"], frame: str = "body") -> Float[Array
     frame = _checks.frame(frame)
     q = _checks.quat(q)
     w, v = q[..., 0], q[..., 1:]
-    skew = _hat(v)
+    skew = _arrays.hat(v)
     eye = jnp.broadcast_to(jnp.eye(3, dtype=q.dtype), skew.shape)
     block = w[..., None, None] * eye + (skew if frame == "space" else -skew)
     return jnp.concatenate([-v[..., :, None], block], axis=-1)
@@ -124,7 +84,7 @@ def qdot_from_omega(
     """
     frame = _checks.frame(frame)
     q, omega = _prepare([q, omega], ["q", "omega"], [4, 3])
-    return _qdot_from_omega(q, omega, frame)
+    return _rates.qdot_from_omega(q, omega, frame)
 
 
 def omega_from_qdot(
@@ -143,7 +103,7 @@ def omega_from_qdot(
     """
     frame = _checks.frame(frame)
     q, qdot = _prepare([q, qdot], ["q", "qdot"], [4, 4])
-    return _omega_from_qdot(q, qdot, frame)
+    return _rates.omega_from_qdot(q, qdot, frame)
 
 
 def qddot_from_alpha(
@@ -168,7 +128,7 @@ def qddot_from_alpha(
     """
     frame = _checks.frame(frame)
     q, qdot, alpha = _prepare([q, qdot, alpha], ["q", "qdot", "alpha"], [4, 4, 3])
-    return _qddot_from_alpha(q, qdot, alpha, frame)
+    return _rates.qddot_from_alpha(q, qdot, alpha, frame)
 
 
 def alpha_from_qddot(
@@ -191,17 +151,7 @@ def alpha_from_qddot(
     """
     frame = _checks.frame(frame)
     q, qdot, qddot = _prepare([q, qdot, qddot], ["q", "qdot", "qddot"], [4, 4, 4])
-    return _alpha_from_qddot(q, qdot, qddot, frame)
-
-
-def _to_body(q: Array, v: Array, frame: str) -> Array:
-    """Resolve a vector given in ``frame`` in the body frame (unit ``q``)."""
-    return v if frame == "body" else _rotate(_conjugate(q), v)
-
-
-def _from_body(q: Array, v: Array, frame: str) -> Array:
-    """Express a body-frame vector in ``frame`` (unit ``q``)."""
-    return v if frame == "body" else _rotate(q, v)
+    return _rates.alpha_from_qddot(q, qdot, qddot, frame)
 
 
 def matrix_rate(
@@ -215,8 +165,8 @@ def matrix_rate(
     """
     frame = _checks.frame(frame)
     q, omega = _prepare([q, omega], ["q", "omega"], [4, 3])
-    a = _to_matrix(q)
-    return a @ _hat(omega) if frame == "body" else _hat(omega) @ a
+    a = _rotation.to_matrix(q)
+    return a @ _arrays.hat(omega) if frame == "body" else _arrays.hat(omega) @ a
 
 
 def matrix_acceleration(
@@ -233,9 +183,9 @@ def matrix_acceleration(
     """
     frame = _checks.frame(frame)
     q, omega, alpha = _prepare([q, omega, alpha], ["q", "omega", "alpha"], [4, 3, 3])
-    a = _to_matrix(q)
-    w = _hat(omega)
-    k = w @ w + _hat(alpha)
+    a = _rotation.to_matrix(q)
+    w = _arrays.hat(omega)
+    k = w @ w + _arrays.hat(alpha)
     return a @ k if frame == "body" else k @ a
 
 
@@ -256,8 +206,8 @@ def point_velocity(
     frame = _checks.frame(frame)
     r_dot = jnp.zeros_like(_checks.vec3(r, "r")) if r_dot is None else r_dot
     q, omega, r, r_dot = _prepare([q, omega, r, r_dot], ["q", "omega", "r", "r_dot"], [4, 3, 3, 3])
-    w = _to_body(q, omega, frame)
-    return _rotate(q, jnp.cross(w, r) + r_dot)
+    w = _rates.to_body(q, omega, frame)
+    return _quaternion.rotate(q, jnp.cross(w, r) + r_dot)
 
 
 def point_acceleration(
@@ -285,6 +235,6 @@ def point_acceleration(
     q, omega, alpha, r, r_dot, r_ddot = _prepare(
         [q, omega, alpha, r, r_dot, r_ddot], ["q", "omega", "alpha", "r", "r_dot", "r_ddot"], [4, 3, 3, 3, 3, 3]
     )
-    w, a = _to_body(q, omega, frame), _to_body(q, alpha, frame)
+    w, a = _rates.to_body(q, omega, frame), _rates.to_body(q, alpha, frame)
     acc = jnp.cross(a, r) + jnp.cross(w, jnp.cross(w, r)) + 2.0 * jnp.cross(w, r_dot) + r_ddot
-    return _rotate(q, acc)
+    return _quaternion.rotate(q, acc)

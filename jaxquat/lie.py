@@ -16,14 +16,10 @@ body angular velocity of ``Exp(phi(t))`` is ``J_r(phi) phi'`` and the space one
 
 from __future__ import annotations
 
-import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks, _safe
-from .algebra import _conjugate, _multiply
-from .conversions import _from_rotvec, _to_matrix, _to_rotvec
-from .skew import _hat
+from . import _checks, _quaternion, _rotation, _safe
 
 __all__ = [
     "plus",
@@ -47,8 +43,8 @@ def plus(q: Float[Array, "*batch 4"], delta: Float[Array, "*batch 3"], frame: st
     q = _checks.quat(q)
     delta = _checks.vec3(delta, "delta")
     q, delta = _checks.broadcast_batch([q, delta], ["q", "delta"], [1, 1])
-    e = _from_rotvec(delta)
-    return _multiply(q, e) if frame == "body" else _multiply(e, q)
+    e = _rotation.from_rotvec(delta)
+    return _quaternion.multiply(q, e) if frame == "body" else _quaternion.multiply(e, q)
 
 
 def minus(q1: Float[Array, "*batch 4"], q0: Float[Array, "*batch 4"], frame: str = "body") -> Float[Array, "*batch 3"]:
@@ -64,27 +60,12 @@ def minus(q1: Float[Array, "*batch 4"], q0: Float[Array, "*batch 4"], frame: str
     q0 = _checks.quat(q0, "q0")
     q1, q0 = _checks.broadcast_batch([q1, q0], ["q1", "q0"], [1, 1])
     q1, q0 = _safe.rescaled(q1), _safe.rescaled(q0)
-    rel = _multiply(_conjugate(q0), q1) if frame == "body" else _multiply(q1, _conjugate(q0))
-    return _to_rotvec(rel)
-
-
-def _jacobian(phi: Array, linear: float | Array, quadratic: Array) -> Array:
-    """``I + linear * hat(phi) + quadratic * hat(phi)^2`` (coefficients per batch element)."""
-    k = _hat(phi)
-    eye = jnp.broadcast_to(jnp.eye(3, dtype=phi.dtype), k.shape)
-    lin = jnp.asarray(linear, phi.dtype)
-    lin = lin[..., None, None] if lin.ndim else lin
-    return eye + lin * k + quadratic[..., None, None] * (k @ k)
-
-
-def _right_jacobian(phi: Array) -> Array:
-    s = _safe.norm_sq(phi)
-    return _jacobian(phi, -_safe.one_minus_cos_over_sq(s), _safe.x_minus_sin_over_cube(s))
-
-
-def _right_jacobian_inverse(phi: Array) -> Array:
-    s = _safe.norm_sq(phi)
-    return _jacobian(phi, 0.5, _safe.jacobian_inverse_coeff(s))
+    rel = (
+        _quaternion.multiply(_quaternion.conjugate(q0), q1)
+        if frame == "body"
+        else _quaternion.multiply(q1, _quaternion.conjugate(q0))
+    )
+    return _rotation.to_rotvec(rel)
 
 
 def right_jacobian(phi: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
@@ -95,7 +76,7 @@ def right_jacobian(phi: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     so every derivative is exact at ``phi = 0`` (where ``J_r = I``). Maps
     exponential-coordinate rates to body angular velocity: ``w_b = J_r(phi) phi'``.
     """
-    return _right_jacobian(_checks.vec3(phi, "phi"))
+    return _rotation.right_jacobian(_checks.vec3(phi, "phi"))
 
 
 def right_jacobian_inverse(phi: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
@@ -105,7 +86,7 @@ def right_jacobian_inverse(phi: Float[Array, "*batch 3"]) -> Float[Array, "*batc
     ``t = 2 pi`` (outside the range of :func:`minus`). Series in ``t^2`` near 0.
     ``phi' = J_r^-1(phi) w_b``.
     """
-    return _right_jacobian_inverse(_checks.vec3(phi, "phi"))
+    return _rotation.right_jacobian_inverse(_checks.vec3(phi, "phi"))
 
 
 def left_jacobian(phi: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
@@ -113,12 +94,12 @@ def left_jacobian(phi: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
 
     Maps exponential-coordinate rates to space angular velocity: ``w_s = J_l(phi) phi'``.
     """
-    return _right_jacobian(-_checks.vec3(phi, "phi"))
+    return _rotation.right_jacobian(-_checks.vec3(phi, "phi"))
 
 
 def left_jacobian_inverse(phi: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     """``J_l(phi)^-1 = J_r(-phi)^-1 = I - hat(phi)/2 + (1/t^2 - cot(t/2)/(2 t)) hat(phi)^2``."""
-    return _right_jacobian_inverse(-_checks.vec3(phi, "phi"))
+    return _rotation.right_jacobian_inverse(-_checks.vec3(phi, "phi"))
 
 
 def adjoint(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
@@ -127,4 +108,4 @@ def adjoint(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
     Moves a body-frame tangent vector to the space frame:
     ``plus(q, d, "body") == plus(q, adjoint(q) @ d, "space")``. Assumes ``|q| = 1``.
     """
-    return _to_matrix(_checks.quat(q))
+    return _rotation.to_matrix(_checks.quat(q))

@@ -51,11 +51,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from . import _safe
-from .algebra import _multiply
-from .conversions import _from_rotvec
-from .interpolate import _slerp
-from .kinematics import _vec_rate
+from . import _quaternion, _rates, _rotation, _safe
 
 __all__ = [
     "AbstractLeafInterpolation",
@@ -193,7 +189,7 @@ class SlerpInterpolation(AbstractLeafInterpolation):
         out = []
         for flag, a, b in zip(flags, leaves0, jax.tree.leaves(self.y1)):
             si = jnp.asarray(s, a.dtype)
-            out.append(_slerp(a, b, jnp.broadcast_to(si, a.shape[:-1])) if flag else a + si * (b - a))
+            out.append(_rotation.slerp(a, b, jnp.broadcast_to(si, a.shape[:-1])) if flag else a + si * (b - a))
         return out
 
 
@@ -238,7 +234,7 @@ class LocalPolynomialInterpolation(AbstractLeafInterpolation):
                 c3 = 5 * a - 3 * b + 14 * d - 32 * m
                 c2 = b - 4 * a - 5 * d + 16 * m
             p = (((c4 * si + c3) * si + c2) * si + a) * si
-            out.append(unit(_multiply(y, _from_rotvec(p))) if flag else y + p)
+            out.append(unit(_quaternion.multiply(y, _rotation.from_rotvec(p))) if flag else y + p)
         return out
 
 
@@ -268,7 +264,7 @@ def unit(q: Array) -> Array:
 def body_rate(q: Array, qdot: Array) -> Array:
     """``w_b = 2 vec(q* qdot)`` for a unit ``q``: the body rate of a quaternion velocity; the
     component of ``qdot`` along ``q`` (a change of ``|q|`` only) drops out."""
-    return 2 * _vec_rate(q, qdot, "body")
+    return 2 * _rates.vec_rate(q, qdot, "body")
 
 
 def dexpinv(theta: Array, w: Array, order: int) -> Array:
@@ -400,7 +396,11 @@ class AbstractRKMK(AbstractLieSolver):
 
         def point(incr):
             return jax.tree.unflatten(
-                tree, [_multiply(x, _from_rotvec(d)) if f else x + d for f, x, d in zip(flags, leaves, incr)]
+                tree,
+                [
+                    _quaternion.multiply(x, _rotation.from_rotvec(d)) if f else x + d
+                    for f, x, d in zip(flags, leaves, incr)
+                ],
             )
 
         def slope(theta, g):
@@ -429,7 +429,10 @@ class AbstractRKMK(AbstractLieSolver):
 
         ks, g_last = jax.lax.fori_loop(1, stages, stage, (ks, g0))
         incr = weigh(tab.b_sol, ks)
-        y1 = [unit(_multiply(x, _from_rotvec(d))) if f else x + d for f, x, d in zip(flags, leaves, incr)]
+        y1 = [
+            unit(_quaternion.multiply(x, _rotation.from_rotvec(d))) if f else x + d
+            for f, x, d in zip(flags, leaves, incr)
+        ]
         y_error = None
         if isinstance(self, diffrax.AbstractAdaptiveSolver):
             err = weigh(tab.b_error, ks)
@@ -437,7 +440,7 @@ class AbstractRKMK(AbstractLieSolver):
             y_error = jax.tree.unflatten(
                 tree,
                 [
-                    _multiply(q, jnp.concatenate([jnp.zeros_like(e[..., :1]), 0.5 * e], -1)) if f else e
+                    _quaternion.multiply(q, jnp.concatenate([jnp.zeros_like(e[..., :1]), 0.5 * e], -1)) if f else e
                     for f, q, e in zip(flags, y1, err)
                 ],
             )
@@ -505,7 +508,10 @@ class LieEuler(AbstractLieSolver):
         # written out: diffrax's ButcherTableau needs two stages or more
         leaves, tree = jax.tree.flatten(y0)
         g = tangent(t0, y0)
-        y1 = [unit(_multiply(x, _from_rotvec(h * gi))) if f else x + h * gi for f, x, gi in zip(flags, leaves, g)]
+        y1 = [
+            unit(_quaternion.multiply(x, _rotation.from_rotvec(h * gi))) if f else x + h * gi
+            for f, x, gi in zip(flags, leaves, g)
+        ]
         return jax.tree.unflatten(tree, y1), None, None, None
 
 

@@ -35,11 +35,7 @@ import numpy as np
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks
-from .algebra import _conjugate, _multiply, _rotate
-from .conversions import _from_rotvec, _to_matrix, _to_rotvec
-from .lie import _right_jacobian
-from .skew import _hat
+from . import _arrays, _checks, _quaternion, _rotation
 
 __all__ = [
     "FilterState",
@@ -90,23 +86,23 @@ class FilterResult(NamedTuple):
 # ------------------------------------------------------------------ kernels (one filter)
 
 
-def _symmetric(p: Array) -> Array:
+def symmetric(p: Array) -> Array:
     return 0.5 * (p + jnp.swapaxes(p, -1, -2))
 
 
 def _predict(q, bias, p, gyro, dt, gyro_noise, bias_noise):
     phi = (gyro - bias) * dt
-    step = _from_rotvec(phi)
-    q = _multiply(q, step)
+    step = _rotation.from_rotvec(phi)
+    q = _quaternion.multiply(q, step)
     eye = jnp.eye(3, dtype=p.dtype)
-    top = jnp.concatenate([_to_matrix(step).T, -dt * _right_jacobian(phi)], axis=-1)
+    top = jnp.concatenate([_rotation.to_matrix(step).T, -dt * _rotation.right_jacobian(phi)], axis=-1)
     bottom = jnp.concatenate([jnp.zeros_like(eye), eye], axis=-1)
     transition = jnp.concatenate([top, bottom], axis=-2)
-    p = _symmetric(transition @ p @ transition.T + _process_noise(dt, gyro_noise, bias_noise, p.dtype))
+    p = symmetric(transition @ p @ transition.T + process_noise(dt, gyro_noise, bias_noise, p.dtype))
     return q, bias, p
 
 
-def _process_noise(dt, gyro_noise, bias_noise, dtype):
+def process_noise(dt, gyro_noise, bias_noise, dtype):
     """The discrete process noise ``Q`` of (dtheta, dbias) over ``dt`` (module docstring)."""
     eye = jnp.eye(3, dtype=dtype)
     sv2, su2 = gyro_noise * gyro_noise, bias_noise * bias_noise
@@ -115,7 +111,7 @@ def _process_noise(dt, gyro_noise, bias_noise, dtype):
     return jnp.block([[q11, q12], [q12, (su2 * dt) * eye]])
 
 
-def _innovate(q, bias, s, cross_t, residual):
+def innovate(q, bias, s, cross_t, residual):
     """The gain ``K = C S^-1`` from the innovation covariance ``S`` (k, k) and the error state's
     cross covariance with the measurements, transposed (``cross_t = C^T``, (k, 6)); the state reset
     by ``dx = K residual`` (``q Exp(dtheta)``, ``bias + dbias``); the NIS and ``log det S``. One
@@ -126,63 +122,63 @@ def _innovate(q, bias, s, cross_t, residual):
     dx = gain @ residual
     nis = residual @ solve(residual)
     logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
-    return gain, _multiply(q, _from_rotvec(dx[:3])), bias + dx[3:], nis, logdet
+    return gain, _quaternion.multiply(q, _rotation.from_rotvec(dx[:3])), bias + dx[3:], nis, logdet
 
 
 def _kalman(q, bias, p, h, residual, r_diag):
     """One linear update of the error state with stacked rows ``h`` (k, 6), ``residual`` (k,) and
     diagonal measurement covariance ``r_diag`` (k,). Missing rows: ``h = 0``, ``residual = 0``,
     ``r_diag = 1`` (they then change nothing and add nothing to the statistics)."""
-    s = _symmetric(h @ p @ h.T + jnp.diag(r_diag))
-    gain, q, bias, nis, logdet = _innovate(q, bias, s, h @ p, residual)  # K = P H^T S^-1 (P symmetric)
+    s = symmetric(h @ p @ h.T + jnp.diag(r_diag))
+    gain, q, bias, nis, logdet = innovate(q, bias, s, h @ p, residual)  # K = P H^T S^-1 (P symmetric)
     a = jnp.eye(6, dtype=p.dtype) - gain @ h
-    p = _symmetric(a @ p @ a.T + (gain * r_diag[None, :]) @ gain.T)
+    p = symmetric(a @ p @ a.T + (gain * r_diag[None, :]) @ gain.T)
     return (q, bias, p), nis, logdet
 
 
-def _quaternion_innovation(q, q_meas):
+def quaternion_innovation(q, q_meas):
     """Whether ``q_meas`` is a measurement (no NaN), and ``Log(q* q_meas)`` (0 when it is not; the
     NaN is replaced before any arithmetic, so none reaches a gradient)."""
     valid = jnp.all(jnp.isfinite(q_meas))
     q_meas = jnp.where(valid, q_meas, q)
-    return valid, jnp.where(valid, _to_rotvec(_multiply(_conjugate(q), q_meas)), 0.0)
+    return valid, jnp.where(valid, _rotation.to_rotvec(_quaternion.multiply(_quaternion.conjugate(q), q_meas)), 0.0)
 
 
-def _masked(body, ref):
+def masked(body, ref):
     """Which of the ``m`` rows hold a measurement (no NaN in either vector), and both sets with
     the missing rows zeroed before any arithmetic, so no NaN reaches a gradient through ``where``."""
     valid = jnp.all(jnp.isfinite(body), axis=-1) & jnp.all(jnp.isfinite(ref), axis=-1)
     return valid, jnp.where(valid[:, None], body, 0.0), jnp.where(valid[:, None], ref, 0.0)
 
 
-def _statistics(nis, logdet, valid):
+def statistics(nis, logdet, valid):
     """Degrees of freedom (3 per vector used) and the innovations' Gaussian log-likelihood."""
     dof = 3.0 * jnp.sum(valid).astype(nis.dtype)
     return dof, -0.5 * (nis + logdet + dof * _LOG_2PI)
 
 
 def _update_vectors(q, bias, p, body, ref, sigma):
-    valid, body, ref = _masked(body, ref)
-    predicted = _rotate(jnp.broadcast_to(_conjugate(q), ref.shape[:-1] + (4,)), ref)
+    valid, body, ref = masked(body, ref)
+    predicted = _quaternion.rotate(jnp.broadcast_to(_quaternion.conjugate(q), ref.shape[:-1] + (4,)), ref)
     residual = jnp.where(valid[:, None], body - predicted, 0.0)
     m = body.shape[0]
-    h_att = _hat(predicted) * valid[:, None, None]  # (m, 3, 3): d b / d dtheta = [b_hat x]
+    h_att = _arrays.hat(predicted) * valid[:, None, None]  # (m, 3, 3): d b / d dtheta = [b_hat x]
     h = jnp.concatenate([h_att, jnp.zeros_like(h_att)], axis=-1).reshape(3 * m, 6)
     r_diag = jnp.repeat(jnp.where(valid, sigma * sigma, 1.0), 3)
     (q, bias, p), nis, logdet = _kalman(q, bias, p, h, residual.reshape(-1), r_diag)
-    return (q, bias, p), (residual, nis, *_statistics(nis, logdet, valid))
+    return (q, bias, p), (residual, nis, *statistics(nis, logdet, valid))
 
 
 def _update_quaternion(q, bias, p, q_meas, sigma):
-    valid, residual = _quaternion_innovation(q, q_meas)
+    valid, residual = quaternion_innovation(q, q_meas)
     h = jnp.concatenate([jnp.eye(3, dtype=p.dtype), jnp.zeros((3, 3), p.dtype)], axis=-1) * valid
     r_diag = jnp.full((3,), jnp.where(valid, sigma * sigma, 1.0))
     (q, bias, p), nis, logdet = _kalman(q, bias, p, h, residual, r_diag)
-    return (q, bias, p), (residual[None], nis, *_statistics(nis, logdet, valid))
+    return (q, bias, p), (residual[None], nis, *statistics(nis, logdet, valid))
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1, 2))
-def _vectorized(kernel, signature: str, options: tuple, *args) -> tuple[Array, ...]:
+def vectorized(kernel, signature: str, options: tuple, *args) -> tuple[Array, ...]:
     """``kernel(*args, **dict(options))`` for one filter, broadcast over the batch by
     ``jnp.vectorize`` (which maps over flat outputs only, so the kernel's output, flat or
     ``(state, statistics)``, is flattened to its leaves), compiled as one program per kernel, option and shape.
@@ -196,14 +192,14 @@ def _vectorized(kernel, signature: str, options: tuple, *args) -> tuple[Array, .
     return jnp.vectorize(flat, signature=signature)(*args)
 
 
-def _apply_update(update, signature: str, args, options: tuple = ()) -> tuple[FilterState, FilterUpdate]:
-    """A single-filter update kernel over the batch (:func:`_vectorized`), its result as
+def apply_update(update, signature: str, args, options: tuple = ()) -> tuple[FilterState, FilterUpdate]:
+    """A single-filter update kernel over the batch (:func:`vectorized`), its result as
     ``(FilterState, FilterUpdate)``."""
-    q, bias, p, *stats = _vectorized(update, signature, options, *args)
+    q, bias, p, *stats = vectorized(update, signature, options, *args)
     return FilterState(q, bias, p), FilterUpdate(*stats)
 
 
-def _scan(predict, update, q0, bias0, p0, dt, gyro, body, ref, sigma, gyro_noise, bias_noise):
+def scan(predict, update, q0, bias0, p0, dt, gyro, body, ref, sigma, gyro_noise, bias_noise):
     """One filter over a record: ``predict(q, bias, P, gyro, dt, gyro_noise, bias_noise)`` and
     ``update(q, bias, P, body, ref, sigma)`` kernels in a ``lax.scan``."""
     # Step k propagates from t_{k-1} with gyro[k-1], then updates with the vectors of t_k; step 0
@@ -221,7 +217,7 @@ def _scan(predict, update, q0, bias0, p0, dt, gyro, body, ref, sigma, gyro_noise
     return out
 
 
-_RECORD_SIGNATURE = "(4),(3),(6,6),(),(n,3),(n,m,3),(n,m,3),(m),(),()->(n,4),(n,3),(n,6,6),(n,m,3),(n),(n),(n)"
+RECORD_SIGNATURE = "(4),(3),(6,6),(),(n,3),(n,m,3),(n,m,3),(m),(),()->(n,4),(n,3),(n,6,6),(n,m,3),(n),(n),(n)"
 
 
 # ------------------------------------------------------------------ checks
@@ -294,15 +290,15 @@ def mekf_predict(
     docstring). ``gyro_noise``, ``bias_noise``: the spectral densities'
     square roots ``sigma_v`` (rad/s^(1/2)) and ``sigma_u`` (rad/s^(3/2)).
     """
-    args = _predict_args(state, gyro, dt, gyro_noise, bias_noise)
-    return FilterState(*_vectorized(_predict, _PREDICT_SIGNATURE, (), *args))
+    args = predict_args(state, gyro, dt, gyro_noise, bias_noise)
+    return FilterState(*vectorized(_predict, PREDICT_SIGNATURE, (), *args))
 
 
-_PREDICT_SIGNATURE = "(4),(3),(6,6),(3),(),(),()->(4),(3),(6,6)"
-_UPDATE_SIGNATURE = "(4),(3),(6,6),(m,3),(m,3),(m)->(4),(3),(6,6),(m,3),(),(),()"
+PREDICT_SIGNATURE = "(4),(3),(6,6),(3),(),(),()->(4),(3),(6,6)"
+UPDATE_SIGNATURE = "(4),(3),(6,6),(m,3),(m,3),(m)->(4),(3),(6,6),(m,3),(),(),()"
 
 
-def _predict_args(state, gyro, dt, gyro_noise, bias_noise) -> list[Array]:
+def predict_args(state, gyro, dt, gyro_noise, bias_noise) -> list[Array]:
     q, bias, p = _state(state)
     gyro = _checks.vec3(gyro, "gyro")
     dt, sv, su = _checks.scalar_like(dt, "dt"), _noise(gyro_noise, "gyro_noise"), _noise(bias_noise, "bias_noise")
@@ -313,16 +309,16 @@ def _predict_args(state, gyro, dt, gyro_noise, bias_noise) -> list[Array]:
     )
 
 
-_QUATERNION_SIGNATURE = "(4),(3),(6,6),(4),()->(4),(3),(6,6),(1,3),(),(),()"
+QUATERNION_SIGNATURE = "(4),(3),(6,6),(4),()->(4),(3),(6,6),(1,3),(),(),()"
 
 
-def _quaternion_args(state, q_meas, noise) -> list[Array]:
+def quaternion_args(state, q_meas, noise) -> list[Array]:
     q, bias, p = _state(state)
     q_meas, s = _checks.quat(q_meas, "q_meas"), _noise(noise, "noise")
     return _checks.broadcast_batch([q, bias, p, q_meas, s], ["q", "bias", "P", "q_meas", "noise"], [1, 1, 2, 1, 0])
 
 
-def _update_args(state, vectors_body, vectors_ref, vector_noise) -> list[Array]:
+def update_args(state, vectors_body, vectors_ref, vector_noise) -> list[Array]:
     q, bias, p = _state(state)
     body, ref = _vectors(vectors_body, vectors_ref, "")
     sigma = _sigma(vector_noise, "vector_noise", body.shape[-2])
@@ -365,8 +361,8 @@ def mekf_update(
     QUEST measurement model, Shuster 1989): the estimate is unaffected, but for normalised unit
     vectors the NIS has about 2, not 3, degrees of freedom per vector.
     """
-    args = _update_args(state, vectors_body, vectors_ref, vector_noise)
-    return _apply_update(_update_vectors, _UPDATE_SIGNATURE, args)
+    args = update_args(state, vectors_body, vectors_ref, vector_noise)
+    return apply_update(_update_vectors, UPDATE_SIGNATURE, args)
 
 
 def mekf_update_quaternion(
@@ -378,8 +374,8 @@ def mekf_update_quaternion(
     measurement; either sign of ``q_meas``), ``H = [I, 0]``. A NaN in ``q_meas`` means no
     measurement. The innovation is returned shaped ``(..., 1, 3)``.
     """
-    args = _quaternion_args(state, q_meas, noise)
-    return _apply_update(_update_quaternion, _QUATERNION_SIGNATURE, args)
+    args = quaternion_args(state, q_meas, noise)
+    return apply_update(_update_quaternion, QUATERNION_SIGNATURE, args)
 
 
 def mekf(
@@ -409,13 +405,13 @@ def mekf(
     Monte Carlo of many runs is one call (or ``vmap``); everything is differentiable, including
     with respect to the noise parameters (the innovations' log-likelihood is in the result).
     """
-    args = _record(q0, bias0, P0, dt, gyro, vectors_body, vectors_ref, vector_noise, gyro_noise, bias_noise)
+    args = record(q0, bias0, P0, dt, gyro, vectors_body, vectors_ref, vector_noise, gyro_noise, bias_noise)
     return FilterResult(
-        *jnp.vectorize(functools.partial(_scan, _predict, _update_vectors), signature=_RECORD_SIGNATURE)(*args)
+        *jnp.vectorize(functools.partial(scan, _predict, _update_vectors), signature=RECORD_SIGNATURE)(*args)
     )
 
 
-def _record(q0, bias0, P0, dt, gyro, vectors_body, vectors_ref, vector_noise, gyro_noise, bias_noise) -> list[Array]:
+def record(q0, bias0, P0, dt, gyro, vectors_body, vectors_ref, vector_noise, gyro_noise, bias_noise) -> list[Array]:
     """Validate a whole-record filter call and broadcast its batch axes (the runners' arguments)."""
     q0, bias0, p0 = mekf_init(q0, bias0, P0)
     gyro = _checks.vec3(gyro, "gyro")

@@ -20,12 +20,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jax import Array
 
-from . import _checks
-from .algebra import _rotate
-from .dynamics import _euler_body
-from .inertia import _solve, _validated
-from .kinematics import _qdot_from_omega
-from .skew import _matvec
+from . import _arrays, _checks, _quaternion, _rates
+from .inertia import validated
 
 __all__ = ["Quadrotor", "ReactionWheelSpacecraft"]
 
@@ -71,7 +67,7 @@ class Quadrotor(eqx.Module):
 
     def __init__(self, mass: Any, inertia: Any, control: Callable, drag: Any = 0.0, gravity: Any = 9.81):
         self.mass = _positive(mass, "mass")
-        self.inertia = _validated(inertia)
+        self.inertia = validated(inertia)
         self.control = _control(control)
         self.drag = _checks.scalar_like(drag, "drag")
         self.gravity = _checks.scalar_like(gravity, "gravity")
@@ -81,9 +77,16 @@ class Quadrotor(eqx.Module):
         thrust, torque = self.control(t, y, args)
         up = jnp.zeros_like(v).at[..., 2].set(1)
         accel = (
-            (jnp.asarray(thrust, v.dtype)[..., None] / self.mass) * _rotate(q, up) - self.gravity * up - self.drag * v
+            (jnp.asarray(thrust, v.dtype)[..., None] / self.mass) * _quaternion.rotate(q, up)
+            - self.gravity * up
+            - self.drag * v
         )
-        return {"r": v, "v": accel, "q": _qdot_from_omega(q, w, "body"), "w": _euler_body(self.inertia, w, torque)}
+        return {
+            "r": v,
+            "v": accel,
+            "q": _rates.qdot_from_omega(q, w, "body"),
+            "w": _rates.euler_body(self.inertia, w, torque),
+        }
 
 
 class ReactionWheelSpacecraft(eqx.Module):
@@ -127,7 +130,7 @@ class ReactionWheelSpacecraft(eqx.Module):
         wheel_torque_limit: Any = None,
         wheel_momentum_limit: Any = None,
     ):
-        self.inertia = _validated(inertia)
+        self.inertia = validated(inertia)
         axes = _checks.as_float_array(axes, "axes")
         if axes.ndim != 2 or axes.shape[1] != 3 or axes.shape[0] < 1:
             raise ValueError(
@@ -156,15 +159,15 @@ class ReactionWheelSpacecraft(eqx.Module):
 
     def momentum(self, y: dict[str, Array]) -> Array:
         """The total angular momentum in the inertial frame, ``R(q) (J w + A h)``."""
-        return _rotate(y["q"], _matvec(self.inertia, y["w"]) + y["h"] @ self.axes)
+        return _quaternion.rotate(y["q"], _arrays.matvec(self.inertia, y["w"]) + y["h"] @ self.axes)
 
     def __call__(self, t, y: dict[str, Array], args) -> dict[str, Array]:
         q, w, h = y["q"], y["w"], y["h"]
         u, external = self.control(t, y, args)
         u = self.wheel_torque(jnp.asarray(u, h.dtype), h)
-        total = _matvec(self.inertia, w) + h @ self.axes
-        wdot = _solve(self.inertia, external - u @ self.axes - jnp.cross(w, total))
-        return {"q": _qdot_from_omega(q, w, "body"), "w": wdot, "h": u}
+        total = _arrays.matvec(self.inertia, w) + h @ self.axes
+        wdot = _arrays.symmetric_solve(self.inertia, external - u @ self.axes - jnp.cross(w, total))
+        return {"q": _rates.qdot_from_omega(q, w, "body"), "w": wdot, "h": u}
 
 
 def _limit(x: Any, name: str, axes: Array) -> Array:

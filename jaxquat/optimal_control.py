@@ -35,11 +35,9 @@ import numpy as np
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks
-from .algebra import _conjugate, _multiply, _rotate
-from .dynamics import _euler_body
+from . import _checks, _quaternion, _rates
 from .fixed_step import solve_fixed_steps
-from .inertia import _validated
+from .inertia import validated
 from .interior_point import ShootingProblem, solve_shooting
 from .lie import minus, plus
 from .lie_solvers import RKMK4, BodyRateTerm
@@ -140,7 +138,7 @@ def held_torque_states(inertia, q0, w0, time, u, substeps: int, fractions=None):
     against 45.8 s."""
 
     def field(t, y, u_k):  # the Lie-algebra form: the body rate itself on the quaternion leaf
-        return y[1], _euler_body(inertia, y[1], u_k)
+        return y[1], _rates.euler_body(inertia, y[1], u_k)
 
     ts = _grid(u.shape[0], substeps, fractions, w0.dtype) * time
     return solve_fixed_steps(
@@ -167,7 +165,9 @@ def _path(cfg: _Config, data: _Data, qs, ws, c, p, k):
         parts += [(r - 1.0).ravel(), (-r - 1.0).ravel()]
     if cfg.n_cones:
         qn = qs / jnp.linalg.norm(qs, axis=-1, keepdims=True)
-        axes = jax.vmap(lambda c: jax.vmap(lambda qq: _rotate(qq, c[:3]))(qn))(data.cones)  # (n, substeps, 3)
+        axes = jax.vmap(lambda c: jax.vmap(lambda qq: _quaternion.rotate(qq, c[:3]))(qn))(
+            data.cones
+        )  # (n, substeps, 3)
         cosines = jnp.einsum("csi,ci->cs", axes, data.cones[:, 3:6])
         parts.append((data.cones[:, 7:8] * (cosines - data.cones[:, 6:7])).ravel())
     if cfg.min_time:
@@ -205,7 +205,9 @@ def _problem(cfg: _Config) -> ShootingProblem:
         return x_next, cost, _path(cfg, data, qs[1:], ws[1:], c, p, k)
 
     def terminal(xN, data):
-        return jnp.concatenate([_multiply(_conjugate(data.qf), xN[:4])[1:], xN[4:] - data.wf / data.w_ref])
+        return jnp.concatenate(
+            [_quaternion.multiply(_quaternion.conjugate(data.qf), xN[:4])[1:], xN[4:] - data.wf / data.w_ref]
+        )
 
     def objective(p, data):
         units, total = _units(data)
@@ -408,7 +410,7 @@ def _cones(keep_out, keep_in, dtype) -> np.ndarray:
     return np.asarray(rows, np.float64).reshape(-1, 8).astype(dtype)
 
 
-def _check_grid(intervals, substeps) -> None:
+def check_grid(intervals, substeps) -> None:
     if not isinstance(intervals, int) or intervals < 2 or not isinstance(substeps, int) or substeps < 1:
         raise ValueError(
             f"need intervals >= 2 and substeps >= 1 (ints), got intervals={intervals!r}, substeps={substeps!r}"
@@ -445,14 +447,14 @@ def refine_mesh(result, *, threshold: float = 1e-3) -> np.ndarray:
     return np.concatenate([[w / 2, w / 2] if cut else [w] for w, cut in zip(lengths, split)])
 
 
-def _check_starts(starts) -> None:
+def check_starts(starts) -> None:
     if not isinstance(starts, int) or starts < 1:
         raise ValueError(f"argument 'starts' must be an int >= 1, got {starts!r}")
 
 
 def _options(tol, max_iter, throw, starts, seed, init) -> tuple:
     """The solver options, checked: ``starts`` a positive int; ``init`` a single earlier result."""
-    _check_starts(starts)
+    check_starts(starts)
     if init is not None:
         if not all(hasattr(init, f) for f in ("time", "ts", "q", "omega", "torque", "controls")):
             raise TypeError(
@@ -478,7 +480,7 @@ class _Warm(NamedTuple):
 _MAX_STEP_ANGLE = 0.5  # rad the body may turn in one RKMK4 step of the reference profile
 
 
-def _check_resolution(T, q0, qf, w0, wf, intervals: int, substeps: int, widest: float | None = None) -> None:
+def check_resolution(T, q0, qf, w0, wf, intervals: int, substeps: int, widest: float | None = None) -> None:
     """Raise before any work when the grid cannot resolve the motion: the body would turn by
     more than ``_MAX_STEP_ANGLE`` in one integration step of the reference time ``T`` (the larger
     of the boundary rates and the eigenaxis profile's peak rate ``2 theta / T``). Such a problem
@@ -515,7 +517,7 @@ def _check_duration(duration) -> float:
 
 def _prepare(inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out, keep_in):
     """Validated, batch-broadcast arrays (shape errors name the argument)."""
-    inertia = _validated(inertia)
+    inertia = validated(inertia)
     if inertia.shape != (3, 3):
         raise ValueError(f"argument 'inertia' must be shaped (3, 3), got shape {tuple(inertia.shape)}")
     q0 = _checks.quat(q0, "q0")
@@ -549,7 +551,7 @@ def _prepare(inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out
 def _run(cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, bound, rate_bound, cones, weights, fractions, options):
     tol, max_iter, throw, starts, seed, init = options
     widest = None if fractions is None else float(np.max(fractions))
-    _check_resolution(duration, q0, qf, w0, wf, cfg.intervals, cfg.substeps, widest)
+    check_resolution(duration, q0, qf, w0, wf, cfg.intervals, cfg.substeps, widest)
     dtype = q0.dtype
     batch = q0.shape[:-1]
     inf = jnp.asarray(jnp.inf, dtype)
@@ -653,7 +655,7 @@ def optimal_reorientation(
     for a rest-to-rest slew of a body with ``J = I`` whose torque bound does not bind, the energy
     at fixed time is ``c / T^3`` (the dynamics are invariant under ``t -> a t``, ``u -> u / a^2``),
     so the optimum has ``3 rho E = T``."""
-    _check_grid(intervals, substeps)
+    check_grid(intervals, substeps)
     intervals, fractions = _mesh(mesh, intervals)
     weights = np.asarray([time_weight, energy_weight, fuel_weight], np.float64)
     if weights.shape != (3,) or not np.all(np.isfinite(weights)) or np.any(weights < 0) or not np.any(weights > 0):

@@ -22,12 +22,8 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks
-from .algebra import _multiply, _rotate
-from .dynamics import _euler_body, _kinetic_energy
-from .inertia import _validated
-from .skew import _matvec
-from .kinematics import _omega_from_qdot, _pure, _qddot_from_alpha
+from . import _arrays, _checks, _quaternion, _rates
+from .inertia import validated
 from .torques import as_body_torque
 
 __all__ = ["RigidBody", "EulerParameterBody", "invariants"]
@@ -41,7 +37,7 @@ class _Body(eqx.Module):
     torque_frame: str = eqx.field(static=True, default="body")
 
     def __init__(self, inertia: Any, torque: Callable | None = None, torque_frame: str = "body"):
-        self.inertia = _validated(inertia)
+        self.inertia = validated(inertia)
         self.torque_frame = _checks.frame(torque_frame, "torque_frame")
         self.torque = None if torque is None else as_body_torque(torque, torque_frame)
 
@@ -52,7 +48,7 @@ class _Body(eqx.Module):
 
     def angular_acceleration(self, t, q: Array, w: Array, args) -> Array:
         """Euler's equations ``I^-1 (M_b - w x I w)`` (body frame)."""
-        return _euler_body(self.inertia, w, self.body_torque(t, q, w, args))
+        return _rates.euler_body(self.inertia, w, self.body_torque(t, q, w, args))
 
 
 class RigidBody(_Body):
@@ -65,7 +61,7 @@ class RigidBody(_Body):
 
     def __call__(self, t, y, args):
         q, w = y
-        return 0.5 * _multiply(q, _pure(w)), self.angular_acceleration(t, q, w, args)
+        return 0.5 * _quaternion.multiply(q, _quaternion.pure(w)), self.angular_acceleration(t, q, w, args)
 
 
 class EulerParameterBody(_Body):
@@ -77,8 +73,8 @@ class EulerParameterBody(_Body):
 
     def __call__(self, t, y, args):
         q, qdot = y
-        w = _omega_from_qdot(q, qdot, "body")
-        return qdot, _qddot_from_alpha(q, qdot, self.angular_acceleration(t, q, w, args), "body")
+        w = _rates.omega_from_qdot(q, qdot, "body")
+        return qdot, _rates.qddot_from_alpha(q, qdot, self.angular_acceleration(t, q, w, args), "body")
 
 
 def invariants(
@@ -93,13 +89,13 @@ def invariants(
     """
     q = _checks.quat(q)
     omega = _checks.vec3(omega, "omega")
-    inertia = _validated(inertia)
+    inertia = validated(inertia)
     q, omega, inertia = _checks.broadcast_batch([q, omega, inertia], ["q", "omega", "inertia"], [1, 1, 2])
     norm = jnp.sqrt(jnp.sum(q * q, -1))
-    h = _matvec(inertia, omega)  # body frame, as omega
+    h = _arrays.matvec(inertia, omega)  # body frame, as omega
     return {
-        "energy": _kinetic_energy(omega, h),
+        "energy": _rates.kinetic_energy(omega, h),
         "momentum_body": h,
-        "momentum_space": _rotate(q / norm[..., None], h),
+        "momentum_space": _quaternion.rotate(q / norm[..., None], h),
         "norm_error": norm - 1,
     }

@@ -29,20 +29,15 @@ import numpy as np
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks
-from .algebra import _conjugate, _multiply
-from .conversions import _from_rotvec, _to_rotvec
-from .interpolate import _align_signs
-from .lie import _right_jacobian, _right_jacobian_inverse
-from .skew import _matvec
+from . import _arrays, _checks, _quaternion, _rotation
 
 __all__ = ["RotationSpline"]
 
 
 def _nonlinear_term(theta: Array, theta_dot: Array) -> Array:
     """``(d/dt J_r(theta)) theta'``: the part of the angular acceleration quadratic in ``theta'``."""
-    _, djac = jax.jvp(_right_jacobian, (theta,), (theta_dot,))
-    return _matvec(djac, theta_dot)
+    _, djac = jax.jvp(_rotation.right_jacobian, (theta,), (theta_dot,))
+    return _arrays.matvec(djac, theta_dot)
 
 
 def _thomas_factor(lower: Array, diag: Array, upper: Array):
@@ -62,14 +57,14 @@ def _thomas_factor(lower: Array, diag: Array, upper: Array):
 def _thomas_solve(lower: Array, c: Array, inv: Array, b: Array) -> Array:
     def forward(d_prev, blocks):
         lo, iv, bb = blocks
-        d = _matvec(iv, bb - _matvec(lo, d_prev))
+        d = _arrays.matvec(iv, bb - _arrays.matvec(lo, d_prev))
         return d, d
 
     _, d = jax.lax.scan(forward, jnp.zeros_like(b[0]), (lower, inv, b))
 
     def backward(x_next, blocks):
         cc, dd = blocks
-        x = dd - _matvec(cc, x_next)
+        x = dd - _arrays.matvec(cc, x_next)
         return x, x
 
     _, x = jax.lax.scan(backward, jnp.zeros_like(b[0]), (c, d), reverse=True)
@@ -80,8 +75,8 @@ def _solve_rates(dt: Array, theta: Array, max_iter: int, tol: float):
     """Key rates ``w_0..w_(n-2)`` (segment starts) and ``theta'`` at segment ends."""
     n1 = theta.shape[0]  # number of segments, n - 1 >= 2
     m = n1 - 1  # interior keys
-    a = _right_jacobian_inverse(theta)  # theta' = A w
-    a_inv = _right_jacobian(theta)
+    a = _rotation.right_jacobian_inverse(theta)  # theta' = A w
+    a_inv = _rotation.right_jacobian(theta)
     rates = theta / dt[:, None]
     w_first, w_last = rates[0], rates[-1]
     eye = jnp.broadcast_to(jnp.eye(3, dtype=theta.dtype), (m, 3, 3))
@@ -90,13 +85,13 @@ def _solve_rates(dt: Array, theta: Array, max_iter: int, tol: float):
     lower = jnp.concatenate([zero, 2 * a_inv[1:-1] / dt[1:-1, None, None]], axis=0)
     upper = jnp.concatenate([2 * a[1:-1] / dt[1:-1, None, None], zero], axis=0)
     b0 = 6 * (theta[:-1] / dt[:-1, None] ** 2 + theta[1:] / dt[1:, None] ** 2)
-    b0 = b0.at[0].add(-2 / dt[0] * _matvec(a_inv[0], w_first))
-    b0 = b0.at[-1].add(-2 / dt[-1] * _matvec(a[-1], w_last))
+    b0 = b0.at[0].add(-2 / dt[0] * _arrays.matvec(a_inv[0], w_first))
+    b0 = b0.at[-1].add(-2 / dt[-1] * _arrays.matvec(a[-1], w_last))
     c, inv = _thomas_factor(lower, diag, upper)
 
     def sweep(_, carry):
         r, done = carry
-        theta_dot = _matvec(a, r)
+        theta_dot = _arrays.matvec(a, r)
         b = b0 - _nonlinear_term(theta[:-1], theta_dot[:-1])
         new = _thomas_solve(lower, c, inv, b)
         converged = jnp.all(jnp.abs(new - r[:-1]) < tol * (1 + jnp.abs(new)))
@@ -104,7 +99,7 @@ def _solve_rates(dt: Array, theta: Array, max_iter: int, tol: float):
         return r, done | converged
 
     rates, _ = jax.lax.fori_loop(0, max_iter, sweep, (rates, jnp.asarray(False)))
-    theta_dot_end = _matvec(a, rates)
+    theta_dot_end = _arrays.matvec(a, rates)
     return jnp.concatenate([w_first[None], rates[:-1]], axis=0), theta_dot_end
 
 
@@ -156,9 +151,9 @@ class RotationSpline:
 @functools.partial(jax.jit, static_argnames=("max_iter", "tol"))
 def _fit(times: Array, quats: Array, max_iter: int, tol: float) -> tuple[Array, Array]:
     """Sign-aligned keys and the cubic coefficients ``(3, n-1, 3)``: ``theta(h) = ((c0 h + c1) h + c2) h``."""
-    keys = _align_signs(quats)
+    keys = _rotation.align_signs(quats)
     dt = jnp.diff(times)
-    theta = _to_rotvec(_multiply(_conjugate(keys[:-1]), keys[1:]))
+    theta = _rotation.to_rotvec(_quaternion.multiply(_quaternion.conjugate(keys[:-1]), keys[1:]))
     if theta.shape[0] == 1:
         rates, theta_dot_end = theta / dt[:, None], theta / dt[:, None]
     else:
@@ -184,11 +179,11 @@ def _evaluate(times: Array, keys: Array, coeffs: Array, t: Array, order: int) ->
     theta = ((c0 * h + c1) * h + c2) * h
     theta_dot = (3 * c0 * h + 2 * c1) * h + c2
     if order == 0:
-        return _multiply(keys[i], _from_rotvec(theta))
-    jac = _right_jacobian(theta)
+        return _quaternion.multiply(keys[i], _rotation.from_rotvec(theta))
+    jac = _rotation.right_jacobian(theta)
     if order == 1:
-        return _matvec(jac, theta_dot)
-    return _matvec(jac, 6 * c0 * h + 2 * c1) + _nonlinear_term(theta, theta_dot)
+        return _arrays.matvec(jac, theta_dot)
+    return _arrays.matvec(jac, 6 * c0 * h + 2 * c1) + _nonlinear_term(theta, theta_dot)
 
 
 def _flatten(s: RotationSpline):

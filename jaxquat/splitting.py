@@ -42,12 +42,10 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from . import _safe, _trig
-from .algebra import _multiply
-from .conversions import _from_rotvec
+from . import _arrays, _quaternion, _rotation, _safe, _trig
 from .lie_solvers import SlerpInterpolation, leaf_flags, unit
 from .rigid_body import RigidBody
-from .torque_free import _propagate
+from .torque_free import propagate
 
 __all__ = ["AbstractSplitting", "RigidBodySplit", "RigidBodySplit4", "EulerPoinsotSplit", "EulerPoinsotSplit4"]
 
@@ -210,7 +208,7 @@ class EulerPoinsotSplit(AbstractSplitting):
         return 2
 
     def free_flow(self, q, w, moments, h):
-        return _propagate(q, w, moments, jnp.broadcast_to(h, q.shape[:-1]).astype(q.dtype))
+        return propagate(q, w, moments, jnp.broadcast_to(h, q.shape[:-1]).astype(q.dtype))
 
 
 class EulerPoinsotSplit4(AbstractSplitting):
@@ -224,14 +222,14 @@ class EulerPoinsotSplit4(AbstractSplitting):
         return 4
 
     def free_flow(self, q, w, moments, h):
-        return _propagate(q, w, moments, jnp.broadcast_to(h, q.shape[:-1]).astype(q.dtype))
+        return propagate(q, w, moments, jnp.broadcast_to(h, q.shape[:-1]).astype(q.dtype))
 
 
 def _axis_rotation(q: Array, m: Array, inv_inertia: Array, axis: int, tau) -> tuple[Array, Array]:
     """Exact flow of ``H_i = m_i^2 / (2 I_i)`` for time ``tau``: rotate about body axis ``i``."""
     phi = tau * m[..., axis] * inv_inertia[..., axis]
     e = jnp.zeros_like(m).at[..., axis].set(phi)
-    q = _multiply(q, _from_rotvec(e))
+    q = _quaternion.multiply(q, _rotation.from_rotvec(e))
     j, k = (axis + 1) % 3, (axis + 2) % 3
     s, c = _trig.sincos(phi)
     mj, mk = m[..., j], m[..., k]
@@ -252,7 +250,7 @@ def _axis_splitting(q, w, moments, h):
 def _invariants(moments: Array, w: Array) -> tuple[Array, Array]:
     """``(|m|^2, 2 E)`` of the body momentum ``m = I w`` (principal axes)."""
     m = moments * w
-    return _safe.norm_sq(m), _safe.dot(m, w)
+    return _safe.norm_sq(m), _arrays.dot(m, w)
 
 
 def _onto_invariants(moments: Array, w: Array, invariants, energy: bool = True) -> Array:
@@ -273,8 +271,8 @@ def _onto_invariants(moments: Array, w: Array, invariants, energy: bool = True) 
     m = moments * w
     n2 = _safe.norm_sq(m)
     g1, g2 = 2 * m, 2 * w  # gradients of |m|^2 and of m . w = sum m^2 / I, in m
-    r1, r2 = n2 - c0, _safe.dot(m, w) - e0
-    a, b, c = _safe.norm_sq(g1), _safe.dot(g1, g2), _safe.norm_sq(g2)
+    r1, r2 = n2 - c0, _arrays.dot(m, w) - e0
+    a, b, c = _safe.norm_sq(g1), _arrays.dot(g1, g2), _safe.norm_sq(g2)
     det = a * c - b * b
     general = (det > 1e-3 * a * c) & energy
     det = jnp.where(general, det, 1.0)

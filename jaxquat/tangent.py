@@ -31,8 +31,7 @@ import optax
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks
-from .kinematics import _vec_rate
+from . import _checks, _rates
 from .lie import plus
 
 __all__ = ["tangent_gradient", "tangent_gradients", "tangent_optimizer", "apply_tangent_updates"]
@@ -51,7 +50,7 @@ def tangent_gradient(
     q = _checks.quat(q)
     grad = _checks.quat(grad, "grad")
     q, grad = _checks.broadcast_batch([q, grad], ["q", "grad"], [1, 1])
-    return 0.5 * _vec_rate(q, grad, frame)  # the same map as a generalised force -> torque
+    return 0.5 * _rates.vec_rate(q, grad, frame)  # the same map as a generalised force -> torque
 
 
 def _mask_tree(params: Any, mask: Any) -> Any:

@@ -60,13 +60,13 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Float
 
 from . import _checks, _trig
-from .inertia import _validated
+from .inertia import validated
 from .lie import minus
 from .optimal_control import (
     ConstrainedReorientation,
-    _check_grid,
-    _check_resolution,
-    _check_starts,
+    check_grid,
+    check_resolution,
+    check_starts,
     constrained_minimum_time,
     held_torque_states,
 )
@@ -398,7 +398,7 @@ def minimum_time_reorientation(
             "method='single_shooting' handles torque bounds only; rate_bound, keep_out and keep_in need "
             "method='interior_point' (the default)"
         )
-    inertia = _validated(inertia)
+    inertia = validated(inertia)
     if inertia.shape != (3, 3):
         raise ValueError(f"argument 'inertia' must be shaped (3, 3), got shape {tuple(inertia.shape)}")
     bound = _checks.vec3(torque_bound, "torque_bound")
@@ -421,8 +421,8 @@ def minimum_time_reorientation(
     for name, x in (("omega0", w0), ("omegaf", wf)):
         if not np.all(np.isfinite(np.asarray(x))):
             raise ValueError(f"argument '{name}' must be finite, got {np.asarray(x)}")
-    _check_grid(intervals, substeps)
-    _check_starts(starts)
+    check_grid(intervals, substeps)
+    check_starts(starts)
     outer = 10 if outer is None else outer
     inner = 200 if inner is None else inner
     mu = 10.0 if mu is None else mu
@@ -433,7 +433,7 @@ def minimum_time_reorientation(
     inertia, bound, w0, wf = (jnp.asarray(x, dtype) for x in (inertia, bound, w0, wf))
     theta, axis = _eigenaxis(q0, qf)
     t_ref = float(init.time) if init is not None else _reference_time(inertia, bound, theta, axis, w0, wf)
-    _check_resolution(t_ref, q0, qf, w0, wf, intervals, substeps)
+    check_resolution(t_ref, q0, qf, w0, wf, intervals, substeps)
     p = _initial_controls(jax.random.PRNGKey(seed), starts, intervals, bound, axis, init)
 
     problem = _Problem(inertia, bound, q0, w0, qf, wf, jnp.asarray(t_ref, dtype))

@@ -45,12 +45,9 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks, _safe, _trig
-from .algebra import _conjugate, _multiply, _scalar_vector
-from .conversions import _from_rotvec
-from .geometry import _minimal_rotation
-from .elliptic import _agm, _am, _amplitude, _incomplete, _quarter_period, _reduced_amplitude, _rf, _sn_cn_dn
-from .inertia import _validated
+from . import _arrays, _checks, _quaternion, _rotation, _safe, _trig
+from .elliptic import agm, am, amplitude, incomplete, quarter_period, reduced_amplitude, rf, sn_cn_dn
+from .inertia import validated
 
 __all__ = ["euler_poinsot", "polhode_period"]
 
@@ -58,7 +55,7 @@ __all__ = ["euler_poinsot", "polhode_period"]
 def _validated_moments(moments, name: str = "moments") -> Array:
     moments = _checks.vec3(moments, name)
     if not _checks.is_traced(moments):
-        _validated(jnp.vectorize(jnp.diag, signature="(3)->(3,3)")(moments), name)
+        validated(jnp.vectorize(jnp.diag, signature="(3)->(3,3)")(moments), name)
     return moments
 
 
@@ -71,7 +68,7 @@ def _roles(moments: Array, omega: Array):
     mid = 3 - lo - hi
     i_mid = _pick(moments, mid)
     # L^2 - 2 E I_mid, written as a sum of terms (no subtraction of large numbers).
-    p_mid = _safe.dot(moments * (moments - i_mid[..., None]), omega * omega)
+    p_mid = _arrays.dot(moments * (moments - i_mid[..., None]), omega * omega)
     around_largest = p_mid > 0
     a = jnp.where(around_largest, hi, lo)
     c = jnp.where(around_largest, lo, hi)
@@ -147,7 +144,7 @@ def _general(q0: Array, w0: Array, moments: Array, t: Array, a: Array, b: Array,
     # the middle axis both products tend to 1 and the difference lost eps / den (1.5e-3
     # relative in float32 at t = 10 from w0 = (1e-6, 1, 1e-6), I = (1, 2, 3)).
     sn0, cn0 = _unit_pair(r_cb * wb_hat, wc)
-    sn_v, cn_v, dn_v = _sn_cn_dn(_am(lam * t, m, mc), m, mc)
+    sn_v, cn_v, dn_v = sn_cn_dn(am(lam * t, m, mc), m, mc)
     den = cn0 * cn0 + sn0 * sn0 * dn_v * dn_v
     wc_t = (wc * cn_v - r_cb * wb_hat * dn0 * sn_v * dn_v) / den
     wb_hat_t = (wb_hat * cn_v * dn_v + wc * dn0 * sn_v / r_cb) / den
@@ -161,18 +158,18 @@ def _general(q0: Array, w0: Array, moments: Array, t: Array, a: Array, b: Array,
     # integrals. The unwrapped amplitude at t only supplies the whole number of turns.
     snt, cnt = _unit_pair(r_cb * wb_hat_t, wc_t)
     theta0, theta_t = _trig.atan2(sn0, cn0), _trig.atan2(snt, cnt)
-    h0, s0, c0 = _reduced_amplitude(sn0, cn0)
-    ht, st, ct = _reduced_amplitude(snt, cnt)
+    h0, s0, c0 = reduced_amplitude(sn0, cn0)
+    ht, st, ct = reduced_amplitude(snt, cnt)
     ell = jnp.sqrt(_safe.norm_sq(moments * w0))
     nu = ia * dbc / (ic * dab)
     # Whole turns of the amplitude at t (only rounded, so computed without derivatives):
     # am(u0 + lambda t), with u0 = F(am u0) = 2 h0 K + sin r0 R_F(cos^2 r0, dn0^2, 1).
     sg = jax.lax.stop_gradient
-    steps, a_last = sg(_agm(m, mc))
-    u0 = sg(h0 * jnp.pi / a_last + s0 * _rf(c0 * c0, jnp.maximum(mc + m * c0 * c0, 0.0), jnp.ones_like(c0)))
-    turns = jnp.round(sg(_amplitude(u0 + lam * t, steps, a_last) - theta_t) / (2 * jnp.pi))
+    steps, a_last = sg(agm(m, mc))
+    u0 = sg(h0 * jnp.pi / a_last + s0 * rf(c0 * c0, jnp.maximum(mc + m * c0 * c0, 0.0), jnp.ones_like(c0)))
+    turns = jnp.round(sg(amplitude(u0 + lam * t, steps, a_last) - theta_t) / (2 * jnp.pi))
     phi_t = 2 * jnp.pi * turns + theta_t
-    _, (pi0, pi_t) = _incomplete(jnp.stack([h0, 2 * turns + ht]), jnp.stack([s0, st]), jnp.stack([c0, ct]), m, mc, -nu)
+    _, (pi0, pi_t) = incomplete(jnp.stack([h0, 2 * turns + ht]), jnp.stack([s0, st]), jnp.stack([c0, ct]), m, mc, -nu)
     kb, kc = jnp.sqrt(ib / dab), jnp.sqrt(ic / dac)
 
     def chi(phi, sn, cn):
@@ -184,12 +181,12 @@ def _general(q0: Array, w0: Array, moments: Array, t: Array, a: Array, b: Array,
         + jnp.sign(ic - ia) * (chi(phi_t, snt, cnt) - chi(theta0, sn0, cn0))
     )
     e = s[..., None] * ea
-    p0 = _minimal_rotation(e, moments * w0 / ell[..., None])  # takes the unit momentum onto e
-    p_t = _minimal_rotation(e, moments * w_t / ell[..., None])
+    p0 = _rotation.minimal_rotation(e, moments * w0 / ell[..., None])  # takes the unit momentum onto e
+    p_t = _rotation.minimal_rotation(e, moments * w_t / ell[..., None])
     half = psi / 2
     sin_half, cos_half = _trig.sincos(half)
-    r = _scalar_vector(cos_half, e, sin_half)
-    q_t = _multiply(_multiply(_multiply(q0, _conjugate(p0)), r), p_t)
+    r = _quaternion.scalar_vector(cos_half, e, sin_half)
+    q_t = _quaternion.multiply(_quaternion.multiply(_quaternion.multiply(q0, _quaternion.conjugate(p0)), r), p_t)
     return q_t, w_t
 
 
@@ -203,13 +200,13 @@ def _unit_pair(y: Array, x: Array) -> tuple[Array, Array]:
 
 
 @jax.jit
-def _propagate(q0: Array, omega0: Array, moments: Array, t: Array) -> tuple[Array, Array]:
+def propagate(q0: Array, omega0: Array, moments: Array, t: Array) -> tuple[Array, Array]:
     """:func:`euler_poinsot` without argument checks (arrays already broadcast). Compiled as one
     program: an eager first call at 11 times took 6.0 s as 214 single-operation compilations,
     3.0 s compiled whole; a repeated eager call 0.77 s, now 5 ms."""
     general, safe_w, safe_i, roles = _safe_state(moments, omega0)
     q_gen, w_gen = _general(q0, safe_w, safe_i, t, *roles)
-    q_steady = _multiply(q0, _from_rotvec(omega0 * t[..., None]))
+    q_steady = _quaternion.multiply(q0, _rotation.from_rotvec(omega0 * t[..., None]))
     return (
         jnp.where(general[..., None], q_gen, q_steady),
         jnp.where(general[..., None], w_gen, omega0),
@@ -257,7 +254,7 @@ def euler_poinsot(
     )
     dtype = q0.dtype
     work = _checks.working_dtype(dtype)
-    q, w = _propagate(*(x.astype(work) for x in (q0, omega0, moments, t)))
+    q, w = propagate(*(x.astype(work) for x in (q0, omega0, moments, t)))
     return q.astype(dtype), w.astype(dtype)
 
 
@@ -277,5 +274,5 @@ def polhode_period(omega0: Float[Array, "*batch 3"], moments: Float[Array, "*bat
     omega0, moments = omega0.astype(work), moments.astype(work)
     general, safe_w, safe_i, roles = _safe_state(moments, omega0)
     *_, m, mc, lam = _parameters(safe_i, safe_w, *roles)
-    period = 4 * _quarter_period(m, mc) / lam
+    period = 4 * quarter_period(m, mc) / lam
     return jnp.where(general & (mc > 0), period, jnp.inf).astype(dtype)

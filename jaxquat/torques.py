@@ -18,9 +18,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks, _trig
-from .algebra import _conjugate, _rotate
-from .skew import _matvec
+from . import _arrays, _checks, _quaternion, _trig
 
 __all__ = ["as_body_torque", "gravity_gradient_torque", "circular_orbit_gravity_gradient"]
 
@@ -44,7 +42,7 @@ def as_body_torque(fn: TorqueFn, frame: str = "body") -> TorqueFn:
         if frame == "body":
             out = fn(t, q, omega, args)
         else:
-            out = _rotate(_conjugate(q), fn(t, q, _rotate(q, omega), args))
+            out = _quaternion.rotate(_quaternion.conjugate(q), fn(t, q, _quaternion.rotate(q, omega), args))
         name = getattr(fn, "__name__", "torque function")
         return _checks.vec3(out, f"{name}(t, q, omega, args)")
 
@@ -71,10 +69,10 @@ def gravity_gradient_torque(
     inertia = _checks.inertia(inertia)
     mu = _checks.scalar_like(mu, "mu")
     q, r, inertia, mu = _checks.broadcast_batch([q, r, inertia, mu], ["q", "position", "inertia", "mu"], [1, 1, 2, 0])
-    rb = _rotate(_conjugate(q), r)
+    rb = _quaternion.rotate(_quaternion.conjugate(q), r)
     rsq = jnp.sum(r * r, axis=-1)
     coeff = 3.0 * mu / (rsq * rsq * jnp.sqrt(rsq))
-    return coeff[..., None] * jnp.cross(rb, _matvec(inertia, rb))
+    return coeff[..., None] * jnp.cross(rb, _arrays.matvec(inertia, rb))
 
 
 def circular_orbit_gravity_gradient(inertia: Float[Array, "3 3"], mean_motion: float | Array) -> TorqueFn:

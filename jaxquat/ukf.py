@@ -29,30 +29,28 @@ import numpy as np
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks
-from .algebra import _conjugate, _multiply, _rotate
-from .conversions import _from_rotvec, _to_rotvec
+from . import _checks, _quaternion, _rotation
 from .mekf import (
-    _PREDICT_SIGNATURE,
-    _QUATERNION_SIGNATURE,
-    _RECORD_SIGNATURE,
-    _UPDATE_SIGNATURE,
+    PREDICT_SIGNATURE,
+    QUATERNION_SIGNATURE,
+    RECORD_SIGNATURE,
+    UPDATE_SIGNATURE,
     FilterResult,
     FilterState,
     FilterUpdate,
-    _apply_update,
-    _vectorized,
-    _innovate,
-    _masked,
-    _predict_args,
-    _process_noise,
-    _quaternion_innovation,
-    _quaternion_args,
-    _record,
-    _scan,
-    _statistics,
-    _symmetric,
-    _update_args,
+    apply_update,
+    vectorized,
+    innovate,
+    masked,
+    predict_args,
+    process_noise,
+    quaternion_innovation,
+    quaternion_args,
+    record,
+    scan,
+    statistics,
+    symmetric,
+    update_args,
 )
 
 __all__ = ["ukf_predict", "ukf_update", "ukf_update_quaternion", "ukf"]
@@ -61,26 +59,30 @@ __all__ = ["ukf_predict", "ukf_update", "ukf_update_quaternion", "ukf"]
 def _points(q, bias, p, kappa):
     """The 13 sigma points (quaternions (13, 4), biases (13, 3)), their offsets (13, 6), weights."""
     n = p.shape[-1]
-    chol = jnp.linalg.cholesky((n + kappa) * _symmetric(p))
+    chol = jnp.linalg.cholesky((n + kappa) * symmetric(p))
     offsets = jnp.concatenate([jnp.zeros((1, n), p.dtype), chol.T, -chol.T], axis=0)
     weights = jnp.concatenate([jnp.full((1,), kappa / (n + kappa)), jnp.full((2 * n,), 0.5 / (n + kappa))]).astype(
         p.dtype
     )
-    qs = _multiply(jnp.broadcast_to(q, (2 * n + 1, 4)), _from_rotvec(offsets[:, :3]))
+    qs = _quaternion.multiply(jnp.broadcast_to(q, (2 * n + 1, 4)), _rotation.from_rotvec(offsets[:, :3]))
     return qs, bias[None, :] + offsets[:, 3:], offsets, weights
 
 
 def _predict(q, bias, p, gyro, dt, gyro_noise, bias_noise, kappa):
     qs, biases, offsets, w = _points(q, bias, p, kappa)
-    qs = _multiply(qs, _from_rotvec((gyro[None, :] - biases) * dt))
+    qs = _quaternion.multiply(qs, _rotation.from_rotvec((gyro[None, :] - biases) * dt))
     centre = qs[0]
     dev = jnp.concatenate(
-        [_to_rotvec(_multiply(jnp.broadcast_to(_conjugate(centre), qs.shape), qs)), offsets[:, 3:]], -1
+        [
+            _rotation.to_rotvec(_quaternion.multiply(jnp.broadcast_to(_quaternion.conjugate(centre), qs.shape), qs)),
+            offsets[:, 3:],
+        ],
+        -1,
     )
     mean = w @ dev
     spread = dev - mean[None, :]
-    p = _symmetric((spread * w[:, None]).T @ spread + _process_noise(dt, gyro_noise, bias_noise, p.dtype))
-    return _multiply(centre, _from_rotvec(mean[:3])), bias + mean[3:], p
+    p = symmetric((spread * w[:, None]).T @ spread + process_noise(dt, gyro_noise, bias_noise, p.dtype))
+    return _quaternion.multiply(centre, _rotation.from_rotvec(mean[:3])), bias + mean[3:], p
 
 
 def _unscented_update(q, bias, p, offsets, w, z, measured, r_diag):
@@ -88,34 +90,34 @@ def _unscented_update(q, bias, p, offsets, w, z, measured, r_diag):
     ``P_zz`` (plus ``diag(r_diag)``), ``P_xz``, then the MEKF's gain and reset; ``P <- P - K P_zz K^T``."""
     z_mean = w @ z
     dz = z - z_mean[None, :]
-    pzz = _symmetric((dz * w[:, None]).T @ dz + jnp.diag(r_diag))
+    pzz = symmetric((dz * w[:, None]).T @ dz + jnp.diag(r_diag))
     pxz = (offsets * w[:, None]).T @ dz
     residual = measured - z_mean
-    gain, q, bias, nis, logdet = _innovate(q, bias, pzz, pxz.T, residual)
-    return (q, bias, _symmetric(p - gain @ pzz @ gain.T)), residual, nis, logdet
+    gain, q, bias, nis, logdet = innovate(q, bias, pzz, pxz.T, residual)
+    return (q, bias, symmetric(p - gain @ pzz @ gain.T)), residual, nis, logdet
 
 
 def _update_vectors(q, bias, p, body, ref, sigma, kappa):
-    valid, body, ref = _masked(body, ref)
+    valid, body, ref = masked(body, ref)
     m = body.shape[0]
     qs, _, offsets, w = _points(q, bias, p, kappa)
-    conj = _conjugate(qs)[:, None, :]
-    z = _rotate(jnp.broadcast_to(conj, (qs.shape[0], m, 4)), jnp.broadcast_to(ref, (qs.shape[0], m, 3)))
+    conj = _quaternion.conjugate(qs)[:, None, :]
+    z = _quaternion.rotate(jnp.broadcast_to(conj, (qs.shape[0], m, 4)), jnp.broadcast_to(ref, (qs.shape[0], m, 3)))
     z = (z * valid[None, :, None]).reshape(qs.shape[0], 3 * m)
     r_diag = jnp.repeat(jnp.where(valid, sigma * sigma, 1.0), 3)
     measured = jnp.where(valid[:, None], body, 0.0).reshape(-1)
     state, residual, nis, logdet = _unscented_update(q, bias, p, offsets, w, z, measured, r_diag)
-    return state, (residual.reshape(m, 3), nis, *_statistics(nis, logdet, valid))
+    return state, (residual.reshape(m, 3), nis, *statistics(nis, logdet, valid))
 
 
 def _update_quaternion(q, bias, p, q_meas, sigma, kappa):
     # The points' predicted measurement, read in the tangent space at the estimate, is their own
     # attitude offset minus(q_i, q) = d_i: the unscented update is then exactly the linear one.
-    valid, measured = _quaternion_innovation(q, q_meas)
+    valid, measured = quaternion_innovation(q, q_meas)
     _, _, offsets, w = _points(q, bias, p, kappa)
     r_diag = jnp.full((3,), jnp.where(valid, sigma * sigma, 1.0))
     state, residual, nis, logdet = _unscented_update(q, bias, p, offsets, w, offsets[:, :3] * valid, measured, r_diag)
-    return state, (residual[None], nis, *_statistics(nis, logdet, valid))
+    return state, (residual[None], nis, *statistics(nis, logdet, valid))
 
 
 def _kappa(kappa: float) -> float:
@@ -137,8 +139,8 @@ def ukf_predict(
 
     Same arguments and noise model as :func:`jaxquat.mekf_predict`; ``kappa`` sets the spread.
     """
-    args = _predict_args(state, gyro, dt, gyro_noise, bias_noise)
-    return FilterState(*_vectorized(_predict, _PREDICT_SIGNATURE, (("kappa", _kappa(kappa)),), *args))
+    args = predict_args(state, gyro, dt, gyro_noise, bias_noise)
+    return FilterState(*vectorized(_predict, PREDICT_SIGNATURE, (("kappa", _kappa(kappa)),), *args))
 
 
 def ukf_update(
@@ -152,8 +154,8 @@ def ukf_update(
     """Update with ``m`` vector measurements ``b_i = R(q)^T r_i + v_i`` through the sigma points'
     predicted measurements (module docstring). Arguments, missing rows and the returned statistics
     as in :func:`jaxquat.mekf_update`."""
-    args = _update_args(state, vectors_body, vectors_ref, vector_noise)
-    return _apply_update(_update_vectors, _UPDATE_SIGNATURE, args, (("kappa", _kappa(kappa)),))
+    args = update_args(state, vectors_body, vectors_ref, vector_noise)
+    return apply_update(_update_vectors, UPDATE_SIGNATURE, args, (("kappa", _kappa(kappa)),))
 
 
 def ukf_update_quaternion(
@@ -163,8 +165,8 @@ def ukf_update_quaternion(
     through the sigma points: read in the tangent space at the estimate the measurement is linear
     in the error (``minus(q_i, q) = d_i``), so this equals :func:`jaxquat.mekf_update_quaternion`
     to rounding. A NaN in ``q_meas`` means no measurement."""
-    args = _quaternion_args(state, q_meas, noise)
-    return _apply_update(_update_quaternion, _QUATERNION_SIGNATURE, args, (("kappa", _kappa(kappa)),))
+    args = quaternion_args(state, q_meas, noise)
+    return apply_update(_update_quaternion, QUATERNION_SIGNATURE, args, (("kappa", _kappa(kappa)),))
 
 
 def ukf(
@@ -184,7 +186,7 @@ def ukf(
     """The unscented filter over a whole record in one ``lax.scan``: the same arguments, sample
     timing and result as :func:`jaxquat.mekf` (row ``k`` is the estimate at ``t_0 + k dt`` after
     the update with the measurements of that time), with sigma points instead of linearisation."""
-    args = _record(q0, bias0, P0, dt, gyro, vectors_body, vectors_ref, vector_noise, gyro_noise, bias_noise)
+    args = record(q0, bias0, P0, dt, gyro, vectors_body, vectors_ref, vector_noise, gyro_noise, bias_noise)
     k = _kappa(kappa)
-    run = functools.partial(_scan, functools.partial(_predict, kappa=k), functools.partial(_update_vectors, kappa=k))
-    return FilterResult(*jnp.vectorize(run, signature=_RECORD_SIGNATURE)(*args))
+    run = functools.partial(scan, functools.partial(_predict, kappa=k), functools.partial(_update_vectors, kappa=k))
+    return FilterResult(*jnp.vectorize(run, signature=RECORD_SIGNATURE)(*args))

@@ -86,3 +86,19 @@ def test_the_package_re_exports_every_module_name_by_name():
             (n, n) for n in importlib.import_module(f"jaxquat.{m}").__all__
         }, m
     assert all(hasattr(jq, name) for name in jq.__all__)
+
+
+def test_no_module_imports_another_module_s_private_names():
+    """An underscore means "only used in this module": the kernels the modules share live in the
+    private modules (``_quaternion``, ``_rotation``, ``_rates``, ``_arrays``, ...) under plain
+    names, so no ``from .module import _name`` crosses a module boundary, in the package or in
+    the examples and benchmarks."""
+    offenders = []
+    for folder in ("jaxquat", "examples", "benchmarks"):
+        for path in (ROOT / folder).glob("*.py"):
+            src = path.read_text()
+            for block in re.findall(r"^from (?:\.|jaxquat\.)\w+ import (?:\([^)]*\)|[^\n]*)", src, re.M):
+                names = re.sub(r"^from (?:\.|jaxquat\.)\w+ import ", "", block).strip("()")
+                private = [n.strip() for n in names.replace("\n", " ").split(",") if n.strip().startswith("_")]
+                offenders += [f"{path.relative_to(ROOT)}: {n}" for n in private]
+    assert not offenders, offenders

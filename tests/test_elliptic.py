@@ -107,9 +107,9 @@ def test_incomplete_integrals_unwrap():
     m, n = rng.uniform(0, 0.95, 24), -rng.uniform(0, 4, 24)
     # The amplitude goes in as whole turns plus (sin, cos), as the torque-free flow passes it.
     turns = np.round(phi / (2 * np.pi))
-    h, s, c = el._reduced_amplitude(jnp.asarray(np.sin(phi), DTYPE), jnp.asarray(np.cos(phi), DTYPE))
+    h, s, c = el.reduced_amplitude(jnp.asarray(np.sin(phi), DTYPE), jnp.asarray(np.cos(phi), DTYPE))
     j_in = (2 * turns + h)[None]
-    f, pi = el._incomplete(
+    f, pi = el.incomplete(
         j_in, s[None], c[None], jnp.asarray(m, DTYPE), jnp.asarray(1 - m, DTYPE), jnp.asarray(n, DTYPE)
     )
     j = np.round(phi / np.pi)

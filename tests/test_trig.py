@@ -111,7 +111,7 @@ def test_jit_vmap_and_batch_shapes():
 @pytest.mark.parametrize("cpu", [True, False], ids=["cpu", "other"])
 def test_the_polynomials_and_barriers_are_for_cpu_only(cpu, monkeypatch):
     """With the CPU backend the rotation ops use these polynomials and the optimisation
-    barriers of ``_safe.scalars`` (no libm calls); with any other (the backend test patched,
+    barriers of ``_arrays.scalars`` (no libm calls); with any other (the backend test patched,
     so no GPU is needed) XLA's own sine, cosine and atan2 and no barrier, to the same values."""
     import jaxquat as jq
 

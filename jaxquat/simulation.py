@@ -13,17 +13,14 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from . import _checks
-from .algebra import _conjugate, _multiply
-from .conversions import _to_matrix
-from .inertia import _validated
+from . import _arrays, _checks, _quaternion, _rotation
+from .inertia import validated
 from .fixed_step import solve_fixed_steps
 from .lie_solvers import RKMK45, AbstractLieSolver, BodyRateTerm
 from .rigid_body import RigidBody
-from .skew import _matvec
 from .splitting import AbstractSplitting, EulerPoinsotSplit
 from .inertia import principal_axes
-from .torque_free import _propagate
+from .torque_free import propagate
 
 __all__ = ["Simulation", "simulate"]
 
@@ -103,7 +100,7 @@ def simulate(
     ts_host = None if _checks.is_traced(ts) else np.asarray(ts, dtype=np.float64)
     q0 = _checks.quat(q0, "q0")
     omega0 = _checks.vec3(omega0, "omega0")
-    inertia = _validated(inertia)  # values too, wherever they are concrete: every path trusts them after this
+    inertia = validated(inertia)  # values too, wherever they are concrete: every path trusts them after this
     ts = _checks.scalar_like(ts, "ts")
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(f"argument 'ts' must be shaped (n,) with n >= 2, got shape {tuple(ts.shape)}")
@@ -277,7 +274,7 @@ def _exact_simulate(q0, omega0, inertia, ts, principal: bool) -> Simulation:
     else:
         moments = jnp.diagonal(inertia, axis1=-2, axis2=-1)
     batch = q0.shape[:-1] + ts.shape
-    qs, ws = _propagate(
+    qs, ws = propagate(
         *(jnp.broadcast_to(x[..., None, :], batch + (x.shape[-1],)) for x in (q0, omega0, moments)),
         jnp.broadcast_to(ts - ts[0], batch),
     )
@@ -291,14 +288,16 @@ def _to_principal(inertia, q, w):
     state in principal axes: ``(moments, q_axes, A, q q_axes, A^T w)``."""
     moments, q_axes = principal_axes(inertia)
     q_axes = jnp.broadcast_to(q_axes, q.shape[:-1] + (4,))
-    r = _to_matrix(q_axes)
-    return moments, q_axes, r, _multiply(q, q_axes), _matvec(jnp.swapaxes(r, -1, -2), w)
+    r = _rotation.to_matrix(q_axes)
+    return moments, q_axes, r, _quaternion.multiply(q, q_axes), _arrays.matvec(jnp.swapaxes(r, -1, -2), w)
 
 
 def _from_principal(qs, ws, q_axes, r):
     """Back from principal axes: ``(q q_axes*, A w)``, ``q_axes`` and ``A`` broadcast onto the states."""
     q_axes = jnp.broadcast_to(q_axes, qs.shape)
-    return _multiply(qs, _conjugate(q_axes)), _matvec(jnp.broadcast_to(r, ws.shape + (3,)), ws)
+    return _quaternion.multiply(qs, _quaternion.conjugate(q_axes)), _arrays.matvec(
+        jnp.broadcast_to(r, ws.shape + (3,)), ws
+    )
 
 
 def _check_times(ts, ts_host, dt0, solver):

@@ -18,8 +18,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks, _safe, _trig
-from .algebra import _multiply
+from . import _arrays, _checks, _quaternion, _safe, _trig
 
 __all__ = ["from_euler", "to_euler"]
 
@@ -47,11 +46,11 @@ def from_euler(angles: Float[Array, "*batch 3"], seq: str) -> Float[Array, "*bat
     angles = _checks.vec3(angles, "angles")
     axes = [_AXIS[c] for c in seq.lower()]
     # One sincos over the whole (..., 3) array, stored before the products use it.
-    s, c = _safe.scalars(*_trig.sincos(0.5 * angles))
+    s, c = _arrays.scalars(*_trig.sincos(0.5 * angles))
     q0, q1, q2 = (_elementary(a, s[..., i], c[..., i]) for i, a in enumerate(axes))
     if seq.islower():
-        return _multiply(q2, _multiply(q1, q0))
-    return _multiply(q0, _multiply(q1, q2))
+        return _quaternion.multiply(q2, _quaternion.multiply(q1, q0))
+    return _quaternion.multiply(q0, _quaternion.multiply(q1, q2))
 
 
 def _gimbal_tolerance(dtype) -> float:
@@ -115,7 +114,7 @@ def to_euler(q: Float[Array, "*batch 4"], seq: str) -> Float[Array, "*batch 3"]:
         third = jnp.where(regular, half_sum - half_diff, 0.0)
     if not symmetric:
         middle = middle - 0.5 * jnp.pi
-    first, middle, third = _safe.scalars(first, middle, third)
+    first, middle, third = _arrays.scalars(first, middle, third)
     angles = [first, middle, third]
     # (t + pi) mod 2 pi - pi, by floor: jnp.remainder is a scalar fmod call on CPU
     wrap = lambda t: t - (2.0 * jnp.pi) * jnp.floor((t + jnp.pi) / (2.0 * jnp.pi))  # noqa: E731

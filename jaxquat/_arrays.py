@@ -1,0 +1,85 @@
+"""Small fixed-size array kernels: the dot product over a minor axis of 3 or 4, the 3x3
+matrix-vector product and the symmetric 3x3 solve, the cross-product matrix and its inverse,
+constants broadcast to a batch, and scalars stored before they are broadcast.
+
+Each is written out per component because XLA on CPU compiles a reduction over a minor axis
+this short into a slow loop, while the written-out form fuses into the surrounding
+expression (measured figures in each docstring). Plain names: the module is private to the
+package (see :mod:`jaxquat._quaternion`).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from . import _trig
+
+
+def scalars(*xs: Array) -> tuple[Array, ...]:
+    """Per-element scalars written to memory before they are broadcast into vectors.
+
+    Left to itself XLA fuses a scalar expression (a ``sincos``, an ``atan2``) into
+    every component of the ``(..., 3)`` or ``(..., 4)`` array built from it, so the
+    polynomial is evaluated three or four times per element. An optimisation
+    barrier makes it one pass that stores the scalars and one cheap pass that
+    assembles the vectors. On CPU only (measured there; ``_trig.on_cpu``): other platforms
+    get the values as they are and XLA's own fusion.
+    """
+    return _trig.on_cpu(lambda *a: jax.lax.optimization_barrier(a), lambda *a: a, *xs)
+
+
+def dot(a: Array, b: Array) -> Array:
+    """``sum(a * b)`` over the last axis (size 3 or 4), written out per component: XLA fuses
+    it into the surrounding expression, while a reduction over a minor axis that short
+    compiles to a slow loop on CPU."""
+    total = a[..., 0] * b[..., 0]
+    for i in range(1, a.shape[-1]):
+        total = total + a[..., i] * b[..., i]
+    return total
+
+
+def const_like(values, like: Array) -> Array:
+    """A constant vector broadcast to ``like``'s batch shape (explicitly, for strict rank promotion)."""
+    return jnp.broadcast_to(jnp.asarray(values, dtype=like.dtype), like.shape[:-1] + (len(values),))
+
+
+def hat(v: Array) -> Array:
+    """The cross-product matrix ``[[0, -z, y], [z, 0, -x], [-y, x, 0]]`` of ``v = (x, y, z)``."""
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    o = jnp.zeros_like(x)
+    return jnp.stack([jnp.stack([o, -z, y], -1), jnp.stack([z, o, -x], -1), jnp.stack([-y, x, o], -1)], axis=-2)
+
+
+def matvec(m: Array, v: Array) -> Array:
+    """``m @ v`` for stacks of 3x3 matrices, written out per component: XLA fuses it, while a
+    ``sum`` over the minor axis of size 3 compiles to a slow reduction loop on CPU (measured 20x)."""
+    return jnp.stack(
+        [m[..., i, 0] * v[..., 0] + m[..., i, 1] * v[..., 1] + m[..., i, 2] * v[..., 2] for i in range(3)], axis=-1
+    )
+
+
+def vee(m: Array) -> Array:
+    """``(m32 - m23, m13 - m31, m21 - m12) / 2``: the vector of ``m``'s skew part."""
+    return 0.5 * jnp.stack(
+        [m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]], axis=-1
+    )
+
+
+def symmetric_solve(inertia: Array, b: Array) -> Array:
+    """``I^-1 b`` for symmetric ``I`` by the adjugate (element-wise, so it fuses; no LAPACK call)."""
+    m00, m01, m02 = inertia[..., 0, 0], inertia[..., 0, 1], inertia[..., 0, 2]
+    m11, m12, m22 = inertia[..., 1, 1], inertia[..., 1, 2], inertia[..., 2, 2]
+    c00 = m11 * m22 - m12 * m12
+    c01 = m02 * m12 - m01 * m22
+    c02 = m01 * m12 - m02 * m11
+    c11 = m00 * m22 - m02 * m02
+    c12 = m01 * m02 - m00 * m12
+    c22 = m00 * m11 - m01 * m01
+    det = m00 * c00 + m01 * c01 + m02 * c02
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return (
+        jnp.stack([c00 * b0 + c01 * b1 + c02 * b2, c01 * b0 + c11 * b1 + c12 * b2, c02 * b0 + c12 * b1 + c22 * b2], -1)
+        / det[..., None]
+    )

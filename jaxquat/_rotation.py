@@ -1,0 +1,206 @@
+"""Rotation kernels: the maps between quaternions and rotation vectors and matrices,
+Davenport's K matrix and its top eigenvector, the right Jacobians of the exponential, slerp
+and the sign alignment of key sequences, and the minimal rotation between two directions, on
+arrays already validated and broadcast.
+
+The public functions of :mod:`jaxquat.conversions`, :mod:`jaxquat.lie`,
+:mod:`jaxquat.interpolate` and :mod:`jaxquat.geometry` check their arguments and call these;
+the rest of the package calls them directly. Plain names: the module is private to the
+package (see :mod:`jaxquat._quaternion`).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from . import _arrays, _quaternion, _safe
+
+
+def to_matrix(q: Array) -> Array:
+    """``R(q) = I + 2 w [u]x + 2 [u]x^2`` for unit ``q = (w, u)``, the diagonal written with ``|q| = 1``."""
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz = x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    rows = [
+        [1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy)],
+        [2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx)],
+        [2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy)],
+    ]
+    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def _k_entries(b: Array, shift: float):
+    """Entries of Davenport's symmetric 4x4 ``K(B) = [[tr B, z^T], [z, B + B^T - tr(B) I]]`` plus ``shift * I``.
+
+    ``z = (B21 - B12, B02 - B20, B10 - B01)``. For every quaternion
+    ``q^T K(B) q = sum_ij B_ij R(q)_ij``; for a rotation matrix ``R`` itself,
+    ``K(R) + I = 4 q q^T`` (Bar-Itzhack 2000), so every column of it is
+    proportional to ``q``.
+    """
+    b00, b01, b02 = b[..., 0, 0], b[..., 0, 1], b[..., 0, 2]
+    b10, b11, b12 = b[..., 1, 0], b[..., 1, 1], b[..., 1, 2]
+    b20, b21, b22 = b[..., 2, 0], b[..., 2, 1], b[..., 2, 2]
+    diag = (
+        shift + b00 + b11 + b22,
+        shift + b00 - b11 - b22,
+        shift - b00 + b11 - b22,
+        shift - b00 - b11 + b22,
+    )
+    off = (b21 - b12, b02 - b20, b10 - b01, b01 + b10, b02 + b20, b12 + b21)
+    return diag, off
+
+
+def _k_columns(diag, off):
+    d0, d1, d2, d3 = diag
+    k01, k02, k03, k12, k13, k23 = off
+    return [
+        (d0, k01, k02, k03),
+        (k01, d1, k12, k13),
+        (k02, k12, d2, k23),
+        (k03, k13, k23, d3),
+    ]
+
+
+def k_matrix(b: Array, shift: float = 0.0) -> Array:
+    """Davenport's symmetric 4x4 ``K(B)`` (plus ``shift * I``), built from its columns."""
+    cols = _k_columns(*_k_entries(b, shift))
+    return jnp.stack([jnp.stack(c, axis=-1) for c in cols], axis=-2)
+
+
+@jax.custom_jvp
+def _top_eigenvector_f(k: Array) -> Array:
+    _, vecs = jnp.linalg.eigh(k)
+    return _quaternion.canonicalize(vecs[..., :, -1])
+
+
+@_top_eigenvector_f.defjvp
+def _top_eigenvector_jvp(primals, tangents):
+    # First-order perturbation of a simple eigenvalue's eigenvector:
+    #   dv = sum_{j != top} v_j (v_j^T dK v) / (lam_top - lam_j).
+    # Only the gaps to the top eigenvalue appear, so the lower eigenvalues may be
+    # degenerate (they are, for K of an exact rotation: 3, -1, -1, -1), where
+    # eigh's own derivative divides by zero.
+    (k,), (dk,) = primals, tangents
+    lam, vecs = jnp.linalg.eigh(k)
+    v = _quaternion.canonicalize(vecs[..., :, -1])
+    sign = jnp.sum(v * vecs[..., :, -1], axis=-1, keepdims=True)
+    others = vecs[..., :, :-1] * sign[..., None]
+    gaps = lam[..., -1:] - lam[..., :-1]
+    safe_gaps = jnp.where(gaps > 0, gaps, 1.0)
+    coeff = jnp.einsum("...ij,...ik,...k->...j", others, dk, v)
+    coeff = jnp.where(gaps > 0, coeff / safe_gaps, 0.0)
+    return v, jnp.einsum("...ij,...j->...i", others, coeff)
+
+
+def top_eigenvector(k: Array) -> Array:
+    """Canonical unit eigenvector of the largest eigenvalue of symmetric 4x4 ``k``.
+
+    Differentiated by a custom JVP that needs only the top eigenvalue to be
+    simple. LAPACK has no half-precision ``eigh``; float16/bfloat16 inputs are
+    solved in float32 and the result cast back.
+    """
+    dtype = k.dtype
+    if jnp.finfo(dtype).bits < 32:
+        k = k.astype(jnp.float32)
+    return _top_eigenvector_f(k).astype(dtype)
+
+
+def from_matrix_shepperd(m: Array) -> Array:
+    """Shepperd's method: the column of ``K(R) + I = 4 q q^T`` with the largest diagonal entry,
+    normalised, canonical sign."""
+    diag, off = _k_entries(m, 1.0)
+    # Shepperd: use the column of K + I with the largest diagonal entry. That
+    # entry is >= 1 for a rotation matrix (the four sum to 4), so the
+    # normalisation never divides by a small number and every branch has
+    # finite gradients.
+    d0, d1, d2, d3 = diag
+    dmax = jnp.maximum(jnp.maximum(d0, d1), jnp.maximum(d2, d3))
+    pick0 = d0 == dmax
+    pick1 = ~pick0 & (d1 == dmax)
+    pick2 = ~pick0 & ~pick1 & (d2 == dmax)
+    col = [
+        jnp.where(pick0, c0, jnp.where(pick1, c1, jnp.where(pick2, c2, c3)))
+        for c0, c1, c2, c3 in zip(*_k_columns(diag, off))
+    ]
+    # Normalise and fix the sign on the components, then stack once: one fused loop.
+    scale = _quaternion.canonical_sign(*col) / jnp.sqrt(sum(c * c for c in col))  # (lax.rsqrt is a scalar call on CPU)
+    return jnp.stack([c * scale for c in col], axis=-1)
+
+
+def to_rotvec(q: Array) -> Array:
+    """The shortest rotation vector ``2 atan2(|v|, |w|) sign(w) v / |v|`` of ``q = (w, v)``
+    (series near the identity)."""
+    q = _quaternion.canonicalize(q)
+    w = q[..., 0]
+    v = q[..., 1:]
+    return _quaternion.scaled(2.0 * _safe.atan2_over_n(_safe.norm_sq(v), w), v)
+
+
+def from_rotvec(r: Array) -> Array:
+    """``(cos(|r|/2), sin(|r|/2) r / |r|)`` (series near ``r = 0``)."""
+    s = 0.25 * _safe.norm_sq(r)  # (phi/2)^2
+    sinc, w = _safe.sinc_cos_of_sq(s)
+    half_sinc = 0.5 * sinc
+    return _quaternion.scalar_vector(w, r, half_sinc)
+
+
+def jacobian(phi: Array, linear: float | Array, quadratic: Array) -> Array:
+    """``I + linear * hat(phi) + quadratic * hat(phi)^2`` (coefficients per batch element)."""
+    k = _arrays.hat(phi)
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=phi.dtype), k.shape)
+    lin = jnp.asarray(linear, phi.dtype)
+    lin = lin[..., None, None] if lin.ndim else lin
+    return eye + lin * k + quadratic[..., None, None] * (k @ k)
+
+
+def right_jacobian(phi: Array) -> Array:
+    """``J_r(phi) = I - (1 - cos t)/t^2 hat(phi) + (t - sin t)/t^3 hat(phi)^2``, ``t = |phi|``."""
+    s = _safe.norm_sq(phi)
+    return jacobian(phi, -_safe.one_minus_cos_over_sq(s), _safe.x_minus_sin_over_cube(s))
+
+
+def right_jacobian_inverse(phi: Array) -> Array:
+    """``J_r(phi)^-1 = I + hat(phi)/2 + (1/t^2 - (1 + cos t)/(2 t sin t)) hat(phi)^2``, ``t = |phi|``."""
+    s = _safe.norm_sq(phi)
+    return jacobian(phi, 0.5, _safe.jacobian_inverse_coeff(s))
+
+
+def slerp(p: Array, q: Array, t: Array) -> Array:
+    """``p (p* q)^t`` along the shorter arc (``q`` flipped when ``p . q < 0``)."""
+    q = jnp.where((_arrays.dot(p, q) < 0)[..., None], -q, q)
+    r = _quaternion.multiply(_quaternion.conjugate(p), q)
+    w, v = r[..., 0], r[..., 1:]
+    nsq = _safe.norm_sq(v)
+    scale = t * _safe.atan2_over_n(nsq, w)  # t * (half angle) / |v|
+    usq = scale * scale * nsq
+    sinc, cos = _safe.sinc_cos_of_sq(usq)
+    step = _quaternion.scalar_vector(cos, v, scale * sinc)
+    return _quaternion.multiply(p, step)
+
+
+def align_signs(keys: Array) -> Array:
+    """Flip keys ``(..., n, 4)`` so that consecutive ones have a non-negative dot product."""
+    dots = jnp.sum(keys[..., 1:, :] * keys[..., :-1, :], axis=-1)
+    steps = jnp.where(dots < 0, -1.0, 1.0).astype(keys.dtype)
+    signs = jnp.concatenate([jnp.ones_like(steps[..., :1]), jnp.cumprod(steps, axis=-1)], axis=-1)
+    return keys * signs[..., None]
+
+
+def minimal_rotation(a: Array, b: Array) -> Array:
+    """Smallest rotation taking the direction of ``b`` onto that of ``a``."""
+    na = jnp.sqrt(_safe.norm_sq(a))
+    nb = jnp.sqrt(_safe.norm_sq(b))
+    w = na * nb + _arrays.dot(a, b)
+    v = jnp.cross(b, a)
+    # Antiparallel: any axis perpendicular to b, rotation by pi.
+    anti = w <= 1e3 * jnp.finfo(a.dtype).eps * na * nb
+    pick_x = jnp.abs(b[..., 0]) <= jnp.maximum(jnp.abs(b[..., 1]), jnp.abs(b[..., 2]))
+    helper = jnp.where(
+        pick_x[..., None], _arrays.const_like([1.0, 0.0, 0.0], b), _arrays.const_like([0.0, 1.0, 0.0], b)
+    )
+    perp = jnp.cross(b, helper)
+    q = jnp.where(anti[..., None], _quaternion.scalar_vector(jnp.zeros_like(w), perp), _quaternion.scalar_vector(w, v))
+    return _quaternion.canonicalize(q / jnp.sqrt(_safe.norm_sq(q))[..., None])
