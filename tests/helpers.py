@@ -172,13 +172,17 @@ def dop853_reference(q0, w0, moments, ts):
 
 def run_example_in_process(script: str, *args: str) -> str:
     """Run an example's ``main`` in this process (float64 pass only: examples switch float64
-    on) with ``sys.argv`` set; its stdout. Used where a test module has already compiled the
-    same jitted solver, so the example reuses it instead of tracing and compiling anew."""
+    on) with ``sys.argv`` set; its stdout. No interpreter and JAX start-up per example (about
+    3 s each), and where a test module has already compiled the same jitted solver the example
+    reuses it instead of tracing and compiling anew. The example runs with JAX's default rank
+    promotion, as it does for a user (the suite's ``"raise"`` is for library code)."""
     import contextlib
     import io
     import pathlib
     import runpy
     import sys
+
+    import jax
 
     root = pathlib.Path(__file__).parent.parent
     path = root / script
@@ -186,7 +190,7 @@ def run_example_in_process(script: str, *args: str) -> str:
     sys.path.insert(0, str(path.parent))
     buffer = io.StringIO()
     try:
-        with contextlib.redirect_stdout(buffer):
+        with contextlib.redirect_stdout(buffer), jax.numpy_rank_promotion("allow"):
             runpy.run_path(str(path), run_name="__main__")
     finally:
         sys.argv = argv

@@ -10,13 +10,13 @@ import re
 import pytest
 from scipy.stats import chi2
 
-from helpers import X64, run_example
+from helpers import X64, run_example_in_process
 
 pytestmark = pytest.mark.skipif(not X64, reason="examples run in float64 by design; once per make test")
 
 
 def test_fit_rotation_example():
-    text = run_example("examples/fit_rotation.py", "--iters", "500")
+    text = run_example_in_process("examples/fit_rotation.py", "--iters", "500")
     rows = {
         m.group(1).strip(): m.groups()[1:]
         for m in re.finditer(r"^(\w+, lr [\d.]+)\s+(\S+)\s+(\S+)\s+(\S+)$", text, re.M)
@@ -28,14 +28,14 @@ def test_fit_rotation_example():
 
 
 def test_spline_plot_example(tmp_path):
-    text = run_example("examples/spline_plot.py", "--out", str(tmp_path))
+    text = run_example_in_process("examples/spline_plot.py", "--out", str(tmp_path))
     assert (tmp_path / "rotation_spline.png").stat().st_size > 10_000
     jumps = [float(x) for x in re.findall(r"([\d.]+e[-+]\d+) rad/s", text)]
     assert len(jumps) == 2 and max(jumps) < 1e-5, text
 
 
 def test_dzhanibekov_example(tmp_path):
-    text = run_example("examples/dzhanibekov.py", "--t-end", "20", "--out", str(tmp_path))
+    text = run_example_in_process("examples/dzhanibekov.py", "--t-end", "20", "--out", str(tmp_path))
     rel = float(re.search(r"relative difference ([\d.e+-]+)", text).group(1))
     assert rel < 1e-6, text  # measured flip interval vs 2 K(m) / lambda
     rk = float(re.search(r"max attitude difference ([\d.e+-]+) rad", text).group(1))
@@ -50,7 +50,7 @@ def _number(pattern, text):
 def test_quadrotor_example(tmp_path):
     """RKMK45 with quaternions= against DOP853 at 1e-13 on the raw ODE (measured at t = 3:
     attitude 1e-10 rad, position 2e-10 m, |q| - 1 2.2e-16; Tsit5 on the raw ODE drifts 1e-11)."""
-    text = run_example("examples/quadrotor.py", "--t-end", "3", "--out", str(tmp_path))
+    text = run_example_in_process("examples/quadrotor.py", "--t-end", "3", "--out", str(tmp_path))
     lie = text[text.index("RKMK45 (Lie)") :].splitlines()[0]
     assert _number(r"attitude error ([\d.e+-]+)", lie) < 1e-8, text
     assert _number(r"position error ([\d.e+-]+)", lie) < 1e-8, text
@@ -64,7 +64,7 @@ def test_reaction_wheels_example(tmp_path):
     """The gyrostat slew: inertial momentum kept to the solver's tolerance (measured 1.2e-10 at
     rtol 1e-10), |q| = 1 to rounding, DOP853 agreement (4e-9 rad), both wheel limits engaged and
     respected (each reaches its limit and none is exceeded)."""
-    text = run_example("examples/reaction_wheels.py", "--t-end", "120", "--out", str(tmp_path))
+    text = run_example_in_process("examples/reaction_wheels.py", "--t-end", "120", "--out", str(tmp_path))
     assert _number(r"inertial angular momentum ([\d.e+-]+)", text) < 1e-8, text
     assert _number(r"\|q\| - 1\| ([\d.e+-]+)", text) < 1e-14, text
     assert _number(r"attitude error ([\d.e+-]+)", text) < 1e-7, text
@@ -81,7 +81,7 @@ def test_star_tracker_mekf_example(tmp_path):
     of the attitude errors inside 3 sigma; the gyro and vector-sensor noise learned to 0.967 and
     0.991 of their true values from 10x off (the bias noise is not identifiable from 4 records of
     60 s, the likelihood is flat in it, and is not asserted). About 30 s, most of it compilation."""
-    text = run_example(
+    text = run_example_in_process(
         "examples/star_tracker_mekf.py",
         "--runs",
         "20",

@@ -12,13 +12,13 @@ import re
 
 import pytest
 
-from helpers import X64, run_example
+from helpers import X64, run_example, run_example_in_process
 
 pytestmark = pytest.mark.skipif(not X64, reason="examples run in float64 by design; once per make test")
 
 
 def test_min_energy_slew_example(tmp_path):
-    text = run_example(
+    text = run_example_in_process(
         "examples/min_energy_slew.py", "--outer", "4", "--inner", "30", "--steps", "100", "--out", str(tmp_path)
     )
     excess = float(re.search(r"optimum 12 theta\^2 / T\^3 = [\d.]+: ([+-][\d.]+) %", text).group(1))
@@ -32,7 +32,7 @@ def test_min_energy_slew_example(tmp_path):
 
 
 def test_inertia_identification_example(tmp_path):
-    text = run_example("examples/inertia_identification.py", "--noise", "1e-2", "--out", str(tmp_path))
+    text = run_example_in_process("examples/inertia_identification.py", "--noise", "1e-2", "--out", str(tmp_path))
     err = float(re.search(r"noise 1e-02 rad: relative tensor error ([\d.e+-]+)", text).group(1))
     assert err < 5e-3, text  # measured 5.4e-4; the error scales with the noise (4.8e-5 at 1e-3)
     assert (tmp_path / "inertia_identification.png").stat().st_size > 10_000
