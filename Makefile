@@ -4,8 +4,9 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 BENCH_STAMP := $(VENV)/.installed-bench
+DOCS_STAMP  := $(VENV)/.installed-docs
 
-.PHONY: demo test test64 test32 lint bench clean
+.PHONY: demo test test64 test32 lint docs bench clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -54,6 +55,16 @@ lint: $(STAMP)
 	$(PY) -m ruff format --check jaxquat tests examples benchmarks
 	$(VENV)/bin/basedpyright --project pyproject.toml
 
+# The site (docs/ and the API reference generated from the docstrings by mkdocstrings) into
+# site/; --strict (mkdocs.yml) turns every warning, a docstring griffe cannot parse or a broken
+# link among them, into an error. .ci/run builds it after the lint.
+$(DOCS_STAMP): $(STAMP)
+	$(PY) -m pip install --quiet --no-compile -e ".[test,docs]"
+	touch $(DOCS_STAMP)
+
+docs: $(DOCS_STAMP)
+	$(VENV)/bin/mkdocs build --strict --quiet
+
 # Rewrites the generated sections of docs/benchmarks.md (the text around them stays).
 bench: $(BENCH_STAMP)
 	$(PY) benchmarks/ops.py --write docs/benchmarks.md
@@ -62,4 +73,4 @@ bench: $(BENCH_STAMP)
 	$(PY) benchmarks/optimal_control.py --write docs/benchmarks.md
 
 clean:
-	rm -rf $(VENV) .pytest_cache .hypothesis
+	rm -rf $(VENV) .pytest_cache .hypothesis site

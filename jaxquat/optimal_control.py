@@ -654,7 +654,40 @@ def optimal_reorientation(
     cases. Example: ``time_weight=1, energy_weight=rho`` trades the slew time against the energy;
     for a rest-to-rest slew of a body with ``J = I`` whose torque bound does not bind, the energy
     at fixed time is ``c / T^3`` (the dynamics are invariant under ``t -> a t``, ``u -> u / a^2``),
-    so the optimum has ``3 rho E = T``."""
+    so the optimum has ``3 rho E = T``.
+
+    Args:
+        inertia: body inertia tensor ``(3, 3)``.
+        q0: initial attitude ``(..., 4)`` (normalised; leading axes: a batch of problems).
+        qf: target attitude ``(..., 4)`` (either sign).
+        omega0: initial body rate ``(..., 3)``; default rest.
+        omegaf: final body rate ``(..., 3)``; default rest.
+        duration: the fixed final time, or ``None`` for a free one.
+        time_weight: weight of ``T`` (free final time only).
+        energy_weight: weight of ``int |u|^2 dt``.
+        fuel_weight: weight of ``int sum_i |u_i| dt`` (needs ``torque_bound``).
+        torque_bound: per-axis body torque bound ``(3,)``, or ``None``.
+        rate_bound: ``|w_i| <= rate_bound`` at every integration step, or ``None``.
+        keep_out: ``(body_axis (3,), inertial_direction (3,), half_angle_rad)`` cones the body
+            axis's inertial image stays out of, at every integration step.
+        keep_in: cones of the same form it stays in.
+        intervals: number of torque intervals ``N`` (ignored when ``mesh`` is given).
+        substeps: RKMK4 steps per interval.
+        tol: the KKT error at which a start has converged.
+        max_iter: interior-point iterations per start.
+        throw: raise ``RuntimeError`` when a problem has no converged start (else return the
+            last iterate).
+        starts: starts solved side by side per problem (the least converged cost wins).
+        seed: the random draw of the starts after the first.
+        init: an earlier (unbatched) result on any grid to warm-start from.
+        mesh: interval lengths (any positive scale) for a non-uniform mesh.
+
+    Returns:
+        A :class:`ConstrainedReorientation` with leading axes the batch of the boundary states:
+        ``time``, ``ts`` ``(N substeps + 1,)``, ``q``, ``omega``, ``torque`` on that grid,
+        ``controls`` ``(N, 3)``, ``violation``, ``cost``, the ``costates`` and ``switching``
+        function, ``kkt_residual``, ``iterations``, ``converged`` and ``start_costs``.
+    """
     check_grid(intervals, substeps)
     intervals, fractions = _mesh(mesh, intervals)
     weights = np.asarray([time_weight, energy_weight, fuel_weight], np.float64)

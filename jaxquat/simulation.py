@@ -95,6 +95,30 @@ def simulate(
     ``dt0`` and every saved state is a step end, not an interpolant; each step is
     rematerialised in the backward pass (``jax.checkpoint``), so reverse mode stores
     one state per step. ``solution`` is then ``None``.
+
+    Args:
+        q0: initial attitude ``(..., 4)``, unit, scalar first (body to space).
+        omega0: initial body angular velocity ``(..., 3)``.
+        inertia: body inertia tensor ``(..., 3, 3)``, symmetric positive definite (values
+            checked when concrete).
+        ts: the times to save at ``(n,)``, strictly increasing, ``n >= 2``; the solve starts
+            at ``ts[0]``.
+        torque: ``fn(t, q, w, args) -> (3,)`` for one body, or ``None`` (torque-free).
+        torque_frame: ``"body"`` or ``"space"``: the frame ``torque`` returns its torque in.
+        args: passed to ``torque`` (shared by a batch).
+        solver: any jaxquat or diffrax solver; default as above.
+        dt0: the step (required by fixed-step solvers; the first step of adaptive ones).
+        rtol: relative tolerance of an adaptive solver.
+        atol: absolute tolerance of an adaptive solver.
+        max_steps: diffrax's step limit (default: 100 000 for adaptive solvers, the number
+            of steps plus a margin for fixed ones).
+        adjoint: a diffrax adjoint (``ForwardMode()`` for ``jax.jvp``/``jacfwd`` through
+            ``diffeqsolve``).
+        progress: show a tqdm progress bar (needs ``tqdm``).
+
+    Returns:
+        A :class:`Simulation`: ``q`` ``(..., n, 4)``, ``omega`` ``(..., n, 3)`` at every ``ts``,
+        and diffrax's ``solution`` (``None`` on the closed-form and scan paths).
     """
     # the values of a concrete ts, taken before any jnp op (under jit those return tracers)
     ts_host = None if _checks.is_traced(ts) else np.asarray(ts, dtype=np.float64)

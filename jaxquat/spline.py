@@ -116,6 +116,12 @@ class RotationSpline:
     A registered pytree: pass it through ``jit``/``vmap``/``grad``; build it
     inside a transformed function to differentiate with respect to the keys and
     times. ``max_iter`` and ``tol`` control the fixed-point solve of the rates.
+
+    Args:
+        times: key times ``(n,)``, strictly increasing, ``n >= 2``.
+        quats: key attitudes ``(n, 4)``, scalar first, either sign.
+        max_iter: iterations of the fixed-point solve for the key rates.
+        tol: its stopping tolerance on the change of the rates.
     """
 
     def __init__(self, times: Any, quats: Any, *, max_iter: int = 10, tol: float = 1e-9):
@@ -136,7 +142,15 @@ class RotationSpline:
         self.keys, self.coeffs = _fit(times.astype(work), quats.astype(work), max_iter, tol)
 
     def __call__(self, t: Float[Array, "*shape"] | float, order: int = 0) -> Array:
-        """Attitude (``order=0``, ``(..., 4)``), body angular velocity (1) or acceleration (2) at ``t``."""
+        """Attitude (``order=0``, ``(..., 4)``), body angular velocity (1) or acceleration (2) at ``t``.
+
+        Args:
+            t: times of any shape.
+            order: 0, 1 or 2.
+
+        Returns:
+            ``(*t.shape, 4)`` for ``order=0``, else ``(*t.shape, 3)`` in the body frame.
+        """
         if order not in (0, 1, 2):
             raise ValueError(f"argument 'order' must be 0, 1 or 2, got {order!r}")
         dtype, work = self.times.dtype, self.coeffs.dtype

@@ -361,6 +361,37 @@ def minimum_time_reorientation(
 
     The discrete optimum approaches the continuous one from above as ``intervals``
     grows; compare two discretisations to see how far it has converged.
+
+    Args:
+        inertia: body inertia tensor ``(3, 3)``.
+        torque_bound: per-axis body torque bound ``(3,)``, positive.
+        q0: initial attitude ``(..., 4)`` (normalised; leading axes: a batch, interior point only).
+        qf: target attitude ``(..., 4)`` (either sign).
+        omega0: initial body rate ``(..., 3)``; default rest.
+        omegaf: final body rate ``(..., 3)``; default rest.
+        intervals: number of torque intervals ``N``.
+        substeps: RKMK4 steps per interval.
+        starts: starts solved side by side.
+        seed: the random draw of the starts after the first.
+        init: an earlier result (any grid) to warm-start from.
+        outer: single shooting only: augmented-Lagrangian multiplier updates (10).
+        inner: single shooting only: L-BFGS iterations per update (200).
+        mu: single shooting only: the penalty weight (10).
+        tol: single shooting only: the terminal tolerance of an accepted start (1e-6).
+        refine: single shooting only: Newton-KKT steps per start (20).
+        progress: single shooting only: a tqdm bar.
+        throw: raise ``RuntimeError`` when no start converges (else return the best).
+        rate_bound: ``|w_i| <= rate_bound`` at every integration step (interior point).
+        keep_out: ``(body_axis, inertial_direction, half_angle_rad)`` cones to stay out of.
+        keep_in: cones of the same form to stay in.
+        mesh: interval lengths for a non-uniform mesh (e.g. :func:`jaxquat.refine_mesh`).
+        method: ``"interior_point"`` or ``"single_shooting"``.
+
+    Returns:
+        A :class:`jaxquat.ConstrainedReorientation` (interior point) or a
+        :class:`Reorientation` (single shooting): ``time``, ``ts`` ``(N substeps + 1,)``,
+        ``q``, ``omega``, ``torque`` on that grid, ``controls`` ``(N, 3)``, ``violation`` and
+        the method's certificate fields.
     """
     if method not in ("interior_point", "single_shooting"):
         raise ValueError(f"argument 'method' must be 'interior_point' or 'single_shooting', got {method!r}")
