@@ -16,6 +16,7 @@ from .algebra import (
     norm as norm,
     normalize as normalize,
     identity as identity,
+    random as random,
     exp as exp,
     log as log,
     power as power,
@@ -37,6 +38,7 @@ from .conversions import (
 from .determination import (
     triad as triad,
     quest as quest,
+    align_vectors as align_vectors,
     attitude_covariance as attitude_covariance,
 )
 from .dynamics import (
@@ -69,8 +71,6 @@ from .geometry import (
     angle as angle,
     angle_between as angle_between,
     mean as mean,
-    align_vectors as align_vectors,
-    random as random,
 )
 from .inertia import (
     inertia_from_points as inertia_from_points,

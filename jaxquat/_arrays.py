@@ -83,3 +83,14 @@ def symmetric_solve(inertia: Array, b: Array) -> Array:
         jnp.stack([c00 * b0 + c01 * b1 + c02 * b2, c01 * b0 + c11 * b1 + c12 * b2, c02 * b0 + c12 * b1 + c22 * b2], -1)
         / det[..., None]
     )
+
+
+def valid_weights(weights: Array) -> Array:
+    """Per set: every weight finite and non-negative, and their sum positive."""
+    ok = jnp.all(jnp.isfinite(weights) & (weights >= 0), axis=-1)
+    return ok & (jnp.sum(weights, axis=-1) > 0)
+
+
+def nan_where(bad: Array, q: Array) -> Array:
+    """NaN in every component of the elements where ``bad`` (the others untouched)."""
+    return jnp.where(bad[..., None], jnp.nan, q)

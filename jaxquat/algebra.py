@@ -1,4 +1,5 @@
-"""Quaternion algebra: product, conjugate, inverse, norm, exp/log/power, 4x4 product matrices.
+"""Quaternion algebra: product, conjugate, inverse, norm, exp/log/power, 4x4 product matrices,
+the identity and uniform random rotations.
 
 Conventions (all of jaxquat): arrays shaped ``(..., 4)``, scalar first
 ``(w, x, y, z)``; Hamilton product (``i j = k``); leading axes are batch axes
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
@@ -27,6 +29,7 @@ __all__ = [
     "norm",
     "normalize",
     "identity",
+    "random",
     "exp",
     "log",
     "power",
@@ -219,3 +222,16 @@ def canonicalize(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4"]:
     The map is piecewise ``+-identity``: its derivative is ``+-I``.
     """
     return _quaternion.canonicalize(_checks.quat(q))
+
+
+def random(key: Array, shape: tuple[int, ...] | int = (), dtype: Any = None) -> Float[Array, "*shape 4"]:
+    """Rotations drawn uniformly from SO(3) (Haar measure): normalised 4-D Gaussians.
+
+    An isotropic Gaussian in R^4 normalised to S^3 is uniform on S^3, and S^3
+    covers SO(3) twice uniformly. ``dtype`` defaults to JAX's default float.
+    """
+    if isinstance(shape, int):
+        shape = (shape,)
+    dtype = _checks.float_dtype(dtype)
+    g = jax.random.normal(key, tuple(shape) + (4,), dtype=dtype)
+    return g / jnp.sqrt(_safe.norm_sq(g))[..., None]

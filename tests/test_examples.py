@@ -1,7 +1,7 @@
 """The examples run as documented (fast variants) and their printed claims hold.
 
-They switch float64 on themselves, so they run in subprocesses, once per `make test`
-(in the float64 pass)."""
+They switch float64 on themselves, so they run once per `make test`, in the float64 pass, in the
+test worker's own process (``helpers.run_example_in_process``)."""
 
 from __future__ import annotations
 

@@ -3,8 +3,9 @@
 A file of their own so that pytest-xdist (``--dist loadfile``) runs them beside the
 other examples (``test_examples.py``) rather than after them.
 
-They switch float64 on themselves, so they run in subprocesses, once per `make test`
-(in the float64 pass)."""
+They run once per `make test`, in the float64 pass: the two that switch float64 on in the test
+worker's own process (``helpers.run_example_in_process``), ``learned_controller`` (JAX's default
+float32) in a subprocess."""
 
 from __future__ import annotations
 
