@@ -20,7 +20,7 @@ def split(q: Array):
     return q[..., 0], q[..., 1], q[..., 2], q[..., 3]
 
 
-def pack(w, x, y, z) -> Array:
+def _pack(w, x, y, z) -> Array:
     """The quaternion ``(..., 4)`` stacked from four component arrays."""
     return jnp.stack([w, x, y, z], axis=-1)
 
@@ -39,7 +39,7 @@ def scalar_vector(s: Array, v: Array, scale: Array | None = None) -> Array:
     """
     if scale is not None:
         v = scale[..., None] * v
-    return pack(s, v[..., 0], v[..., 1], v[..., 2])
+    return _pack(s, v[..., 0], v[..., 1], v[..., 2])
 
 
 def _permuted(x: Array, k: int) -> Array:

@@ -147,7 +147,7 @@ def from_rotvec(r: Array) -> Array:
     return _quaternion.scalar_vector(w, r, half_sinc)
 
 
-def jacobian(phi: Array, linear: float | Array, quadratic: Array) -> Array:
+def _jacobian(phi: Array, linear: float | Array, quadratic: Array) -> Array:
     """``I + linear * hat(phi) + quadratic * hat(phi)^2`` (coefficients per batch element)."""
     k = _arrays.hat(phi)
     eye = jnp.broadcast_to(jnp.eye(3, dtype=phi.dtype), k.shape)
@@ -159,13 +159,13 @@ def jacobian(phi: Array, linear: float | Array, quadratic: Array) -> Array:
 def right_jacobian(phi: Array) -> Array:
     """``J_r(phi) = I - (1 - cos t)/t^2 hat(phi) + (t - sin t)/t^3 hat(phi)^2``, ``t = |phi|``."""
     s = _safe.norm_sq(phi)
-    return jacobian(phi, -_safe.one_minus_cos_over_sq(s), _safe.x_minus_sin_over_cube(s))
+    return _jacobian(phi, -_safe.one_minus_cos_over_sq(s), _safe.x_minus_sin_over_cube(s))
 
 
 def right_jacobian_inverse(phi: Array) -> Array:
     """``J_r(phi)^-1 = I + hat(phi)/2 + (1/t^2 - (1 + cos t)/(2 t sin t)) hat(phi)^2``, ``t = |phi|``."""
     s = _safe.norm_sq(phi)
-    return jacobian(phi, 0.5, _safe.jacobian_inverse_coeff(s))
+    return _jacobian(phi, 0.5, _safe.jacobian_inverse_coeff(s))
 
 
 def slerp(p: Array, q: Array, t: Array) -> Array:

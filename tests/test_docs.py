@@ -15,6 +15,13 @@ def _defined_tests() -> set[str]:
     return names
 
 
+def _module_imports(src: str) -> set[str]:
+    """The jaxquat modules a package module's source imports (``from .m import ...`` and
+    ``from . import m, ...``)."""
+    imported = set(re.findall(r"^from \.(\w+) import", src, re.M))
+    return imported | {n.strip() for grp in re.findall(r"^from \. import ([\w, ]+)", src, re.M) for n in grp.split(",")}
+
+
 def test_equations_page_cites_existing_tests_and_functions():
     text = (ROOT / "docs" / "equations.md").read_text()
     cited_tests = set(re.findall(r"`(test_\w+)`", text))
@@ -45,9 +52,7 @@ def test_imports_point_down_the_layer_map_of_architecture_md():
     assert set(order) == modules, f"architecture.md map != package modules: {set(order) ^ modules}"
     rank = {m: i for i, m in enumerate(order)}
     for m in order:
-        src = (ROOT / "jaxquat" / f"{m}.py").read_text()
-        imported = set(re.findall(r"^from \.(\w+) import", src, re.M))
-        imported |= {n.strip() for grp in re.findall(r"^from \. import ([\w, ]+)", src, re.M) for n in grp.split(",")}
+        imported = _module_imports((ROOT / "jaxquat" / f"{m}.py").read_text())
         upward = {i for i in imported if rank[i] <= rank[m]}
         assert not upward, f"{m}.py imports {upward}, which the map places above it"
 
@@ -63,9 +68,7 @@ def test_the_module_map_lists_each_module_s_imports():
             continue
         listed = re.search(r"\(([^()]*)\)\s*$", entry.rstrip()).group(1)
         listed = set() if listed == "none" else {x.strip() for x in listed.split(",")}
-        src = (ROOT / "jaxquat" / f"{name.group(1)}.py").read_text()
-        imported = set(re.findall(r"^from \.(\w+) import", src, re.M))
-        imported |= {n.strip() for grp in re.findall(r"^from \. import ([\w, ]+)", src, re.M) for n in grp.split(",")}
+        imported = _module_imports((ROOT / "jaxquat" / f"{name.group(1)}.py").read_text())
         assert listed == imported - {"_checks"}, f"{name.group(1)}.py: map lists {listed}, imports {imported}"
 
 
@@ -97,9 +100,8 @@ def test_no_module_imports_another_module_s_private_names():
     for folder in ("jaxquat", "examples", "benchmarks"):
         for path in (ROOT / folder).glob("*.py"):
             src = path.read_text()
-            for block in re.findall(r"^from (?:\.|jaxquat\.)\w+ import (?:\([^)]*\)|[^\n]*)", src, re.M):
-                names = re.sub(r"^from (?:\.|jaxquat\.)\w+ import ", "", block).strip("()")
-                private = [n.strip() for n in names.replace("\n", " ").split(",") if n.strip().startswith("_")]
+            for names in re.findall(r"^from (?:\.|jaxquat\.)\w+ import (\([^)]*\)|[^\n]*)", src, re.M):
+                private = [n.strip() for n in names.strip("()").split(",") if n.strip().startswith("_")]
                 offenders += [f"{path.relative_to(ROOT)}: {n}" for n in private]
     assert not offenders, offenders
 
