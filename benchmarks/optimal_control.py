@@ -36,7 +36,7 @@ PROBLEMS = {
 def _guess(inertia, bound, theta, n):
     """jaxquat's own initial guess (the perturbed eigenaxis bang-bang profile), in physical units,
     so that both solvers start from the same point: ``(T, X (n+1, 7), U (n, 3))``."""
-    from jaxquat import optimal_control as oc
+    from jaxquat.control import optimal_control as oc
 
     q0, qf = jnp.asarray([1.0, 0, 0, 0]), jnp.asarray([np.cos(theta / 2), np.sin(theta / 2), 0, 0])
     zero = jnp.zeros(3)

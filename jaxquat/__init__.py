@@ -9,7 +9,7 @@ Each module's ``__all__`` is its public surface; the package re-exports them all
 (``name as name``, so type checkers see each re-export).
 """
 
-from .algebra import (
+from .rotations.algebra import (
     multiply as multiply,
     conjugate as conjugate,
     inverse as inverse,
@@ -25,7 +25,7 @@ from .algebra import (
     rotate as rotate,
     canonicalize as canonicalize,
 )
-from .conversions import (
+from .rotations.conversions import (
     to_matrix as to_matrix,
     from_matrix as from_matrix,
     to_rotvec as to_rotvec,
@@ -35,13 +35,50 @@ from .conversions import (
     to_mrp as to_mrp,
     from_mrp as from_mrp,
 )
-from .determination import (
+from .rotations.determination import (
     triad as triad,
     quest as quest,
     align_vectors as align_vectors,
     attitude_covariance as attitude_covariance,
 )
-from .dynamics import (
+from .rotations.euler_angles import (
+    from_euler as from_euler,
+    to_euler as to_euler,
+)
+from .rotations.geometry import (
+    angle as angle,
+    angle_between as angle_between,
+    mean as mean,
+)
+from .rotations.skew import (
+    hat as hat,
+    vee as vee,
+)
+from .manifold.interpolate import (
+    slerp as slerp,
+    squad as squad,
+    squad_control_points as squad_control_points,
+    squad_segment as squad_segment,
+)
+from .manifold.lie import (
+    plus as plus,
+    minus as minus,
+    right_jacobian as right_jacobian,
+    right_jacobian_inverse as right_jacobian_inverse,
+    left_jacobian as left_jacobian,
+    left_jacobian_inverse as left_jacobian_inverse,
+    adjoint as adjoint,
+)
+from .manifold.spline import (
+    RotationSpline as RotationSpline,
+)
+from .manifold.tangent import (
+    tangent_gradient as tangent_gradient,
+    tangent_gradients as tangent_gradients,
+    tangent_optimizer as tangent_optimizer,
+    apply_tangent_updates as apply_tangent_updates,
+)
+from .mechanics.dynamics import (
     angular_momentum as angular_momentum,
     kinetic_energy as kinetic_energy,
     angular_acceleration as angular_acceleration,
@@ -54,25 +91,13 @@ from .dynamics import (
     generalized_force as generalized_force,
     torque_from_generalized_force as torque_from_generalized_force,
 )
-from .elliptic import (
+from .mechanics.elliptic import (
     ellipj as ellipj,
     ellipk as ellipk,
     elliprf as elliprf,
     elliprj as elliprj,
 )
-from .euler_angles import (
-    from_euler as from_euler,
-    to_euler as to_euler,
-)
-from .fixed_step import (
-    solve_fixed_steps as solve_fixed_steps,
-)
-from .geometry import (
-    angle as angle,
-    angle_between as angle_between,
-    mean as mean,
-)
-from .inertia import (
+from .mechanics.inertia import (
     inertia_from_points as inertia_from_points,
     rotate_inertia as rotate_inertia,
     inertia_rate as inertia_rate,
@@ -81,18 +106,7 @@ from .inertia import (
     check_inertia as check_inertia,
     principal_axes as principal_axes,
 )
-from .interior_point import (
-    ShootingProblem as ShootingProblem,
-    ShootingSolution as ShootingSolution,
-    solve_shooting as solve_shooting,
-)
-from .interpolate import (
-    slerp as slerp,
-    squad as squad,
-    squad_control_points as squad_control_points,
-    squad_segment as squad_segment,
-)
-from .kinematics import (
+from .mechanics.kinematics import (
     rate_matrix as rate_matrix,
     qdot_from_omega as qdot_from_omega,
     omega_from_qdot as omega_from_qdot,
@@ -103,16 +117,28 @@ from .kinematics import (
     point_velocity as point_velocity,
     point_acceleration as point_acceleration,
 )
-from .lie import (
-    plus as plus,
-    minus as minus,
-    right_jacobian as right_jacobian,
-    right_jacobian_inverse as right_jacobian_inverse,
-    left_jacobian as left_jacobian,
-    left_jacobian_inverse as left_jacobian_inverse,
-    adjoint as adjoint,
+from .mechanics.models import (
+    Quadrotor as Quadrotor,
+    ReactionWheelSpacecraft as ReactionWheelSpacecraft,
 )
-from .lie_solvers import (
+from .mechanics.rigid_body import (
+    RigidBody as RigidBody,
+    EulerParameterBody as EulerParameterBody,
+    invariants as invariants,
+)
+from .mechanics.torque_free import (
+    euler_poinsot as euler_poinsot,
+    polhode_period as polhode_period,
+)
+from .mechanics.torques import (
+    as_body_torque as as_body_torque,
+    gravity_gradient_torque as gravity_gradient_torque,
+    circular_orbit_gravity_gradient as circular_orbit_gravity_gradient,
+)
+from .integration.fixed_step import (
+    solve_fixed_steps as solve_fixed_steps,
+)
+from .integration.lie_solvers import (
     AbstractLeafInterpolation as AbstractLeafInterpolation,
     SlerpInterpolation as SlerpInterpolation,
     LocalPolynomialInterpolation as LocalPolynomialInterpolation,
@@ -125,7 +151,35 @@ from .lie_solvers import (
     RKMKTsit5 as RKMKTsit5,
     RKMK8 as RKMK8,
 )
-from .mekf import (
+from .integration.simulation import (
+    Simulation as Simulation,
+    simulate as simulate,
+)
+from .integration.splitting import (
+    AbstractSplitting as AbstractSplitting,
+    RigidBodySplit as RigidBodySplit,
+    RigidBodySplit4 as RigidBodySplit4,
+    EulerPoinsotSplit as EulerPoinsotSplit,
+    EulerPoinsotSplit4 as EulerPoinsotSplit4,
+)
+from .control.interior_point import (
+    ShootingProblem as ShootingProblem,
+    ShootingSolution as ShootingSolution,
+    solve_shooting as solve_shooting,
+)
+from .control.optimal_control import (
+    ConstrainedReorientation as ConstrainedReorientation,
+    minimum_energy_reorientation as minimum_energy_reorientation,
+    minimum_fuel_reorientation as minimum_fuel_reorientation,
+    constrained_minimum_time as constrained_minimum_time,
+    optimal_reorientation as optimal_reorientation,
+    refine_mesh as refine_mesh,
+)
+from .control.time_optimal import (
+    Reorientation as Reorientation,
+    minimum_time_reorientation as minimum_time_reorientation,
+)
+from .estimation.mekf import (
     FilterState as FilterState,
     FilterUpdate as FilterUpdate,
     FilterResult as FilterResult,
@@ -135,61 +189,7 @@ from .mekf import (
     mekf_update_quaternion as mekf_update_quaternion,
     mekf as mekf,
 )
-from .models import (
-    Quadrotor as Quadrotor,
-    ReactionWheelSpacecraft as ReactionWheelSpacecraft,
-)
-from .optimal_control import (
-    ConstrainedReorientation as ConstrainedReorientation,
-    minimum_energy_reorientation as minimum_energy_reorientation,
-    minimum_fuel_reorientation as minimum_fuel_reorientation,
-    constrained_minimum_time as constrained_minimum_time,
-    optimal_reorientation as optimal_reorientation,
-    refine_mesh as refine_mesh,
-)
-from .rigid_body import (
-    RigidBody as RigidBody,
-    EulerParameterBody as EulerParameterBody,
-    invariants as invariants,
-)
-from .simulation import (
-    Simulation as Simulation,
-    simulate as simulate,
-)
-from .skew import (
-    hat as hat,
-    vee as vee,
-)
-from .spline import (
-    RotationSpline as RotationSpline,
-)
-from .splitting import (
-    AbstractSplitting as AbstractSplitting,
-    RigidBodySplit as RigidBodySplit,
-    RigidBodySplit4 as RigidBodySplit4,
-    EulerPoinsotSplit as EulerPoinsotSplit,
-    EulerPoinsotSplit4 as EulerPoinsotSplit4,
-)
-from .tangent import (
-    tangent_gradient as tangent_gradient,
-    tangent_gradients as tangent_gradients,
-    tangent_optimizer as tangent_optimizer,
-    apply_tangent_updates as apply_tangent_updates,
-)
-from .time_optimal import (
-    Reorientation as Reorientation,
-    minimum_time_reorientation as minimum_time_reorientation,
-)
-from .torque_free import (
-    euler_poinsot as euler_poinsot,
-    polhode_period as polhode_period,
-)
-from .torques import (
-    as_body_torque as as_body_torque,
-    gravity_gradient_torque as gravity_gradient_torque,
-    circular_orbit_gravity_gradient as circular_orbit_gravity_gradient,
-)
-from .ukf import (
+from .estimation.ukf import (
     ukf_predict as ukf_predict,
     ukf_update as ukf_update,
     ukf_update_quaternion as ukf_update_quaternion,

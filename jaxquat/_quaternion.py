@@ -1,7 +1,7 @@
 """Quaternion kernels: the Hamilton product, conjugate, rotation of vectors, the canonical sign
 and component packing, on arrays already validated and broadcast.
 
-The public functions of :mod:`jaxquat.algebra` (and every other module) check their
+The public functions of :mod:`jaxquat.rotations.algebra` (and every other module) check their
 arguments once and then call these; inside the package the kernels are called directly, so
 validation runs once per entry point. Names here are plain: the module's leading underscore
 says "not public API", a name's says "only used in this module". Element-wise on the four

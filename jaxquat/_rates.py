@@ -3,7 +3,7 @@
 Euler's equations solved for the acceleration, and the kinetic energy, on arrays already
 validated and broadcast.
 
-The public functions of :mod:`jaxquat.kinematics` and :mod:`jaxquat.dynamics` check their
+The public functions of :mod:`jaxquat.mechanics.kinematics` and :mod:`jaxquat.mechanics.dynamics` check their
 arguments and call these; the vector fields, solvers and filters call them directly. Plain
 names: the module is private to the package (see :mod:`jaxquat._quaternion`).
 """

@@ -3,8 +3,8 @@ Davenport's K matrix and its top eigenvector, the right Jacobians of the exponen
 and the sign alignment of key sequences, and the minimal rotation between two directions, on
 arrays already validated and broadcast.
 
-The public functions of :mod:`jaxquat.conversions`, :mod:`jaxquat.lie`,
-:mod:`jaxquat.interpolate` and :mod:`jaxquat.geometry` check their arguments and call these;
+The public functions of :mod:`jaxquat.rotations.conversions`, :mod:`jaxquat.manifold.lie`,
+:mod:`jaxquat.manifold.interpolate` and :mod:`jaxquat.rotations.geometry` check their arguments and call these;
 the rest of the package calls them directly. Plain names: the module is private to the
 package (see :mod:`jaxquat._quaternion`).
 """

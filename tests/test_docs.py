@@ -15,11 +15,26 @@ def _defined_tests() -> set[str]:
     return names
 
 
+def _package_modules() -> dict[str, pathlib.Path]:
+    """Every module of the package by its name (names are unique across the subpackages), the
+    subpackages' ``__init__`` files aside."""
+    paths = [p for p in (ROOT / "jaxquat").rglob("*.py") if p.name != "__init__.py"]
+    modules = {p.stem: p for p in paths}
+    assert len(modules) == len(paths), "two modules of the package share a name"
+    return modules
+
+
 def _module_imports(src: str) -> set[str]:
-    """The jaxquat modules a package module's source imports (``from .m import ...`` and
-    ``from . import m, ...``)."""
-    imported = set(re.findall(r"^from \.(\w+) import", src, re.M))
-    return imported | {n.strip() for grp in re.findall(r"^from \. import ([\w, ]+)", src, re.M) for n in grp.split(",")}
+    """The jaxquat modules a package module's source imports, by name: ``from .m import ...``,
+    ``from ..layer.m import ...``, ``from . import m, ...`` and ``from ..[layer] import m, ...``."""
+    layers = {p.name for p in (ROOT / "jaxquat").iterdir() if (p / "__init__.py").exists()}
+    imported = set()
+    for path, names in re.findall(r"^from \.+([\w.]*) import ([\w, ]+|\()", src, re.M):
+        if path in ("", *layers):  # ``from . import m`` or ``from ..layer import m, n``
+            imported |= {n.strip() for n in names.split(",")}
+        else:  # ``from .m import x`` or ``from ..layer.m import (``
+            imported.add(path.split(".")[-1])
+    return imported
 
 
 def test_equations_page_cites_existing_tests_and_functions():
@@ -38,7 +53,13 @@ def test_equations_page_cites_existing_tests_and_functions():
     unknown = {n for n in cited_functions if not hasattr(jq, n)}
     assert not unknown, f"docs/equations.md cites functions jaxquat does not export: {sorted(unknown)}"
     # every public function of the kinematics/dynamics layer appears on the page
-    layer = set(jq.kinematics.__all__) | set(jq.dynamics.__all__) | set(jq.inertia.__all__) | set(jq.torques.__all__)
+    mech = jq.mechanics
+    layer = (
+        set(mech.kinematics.__all__)
+        | set(mech.dynamics.__all__)
+        | set(mech.inertia.__all__)
+        | set(mech.torques.__all__)
+    )
     absent = {n for n in layer if f"`{n}" not in text}
     assert not absent, f"public functions missing from docs/equations.md: {sorted(absent)}"
 
@@ -47,12 +68,13 @@ def test_imports_point_down_the_layer_map_of_architecture_md():
     """Each module imports only modules listed below it in docs/architecture.md (no cycles)."""
     text = (ROOT / "docs" / "architecture.md").read_text()
     block = text.split("```\n")[1]
-    order = re.findall(r"^(\w+)\.py", block, re.M)  # top of the map first
-    modules = {p.stem for p in (ROOT / "jaxquat").glob("*.py")} - {"__init__"}
-    assert set(order) == modules, f"architecture.md map != package modules: {set(order) ^ modules}"
+    paths = re.findall(r"^([\w/]+)\.py", block, re.M)  # top of the map first, as jaxquat/ paths
+    modules = {str(p.relative_to(ROOT / "jaxquat").with_suffix("")) for p in _package_modules().values()}
+    assert set(paths) == modules, f"architecture.md map != package modules: {set(paths) ^ modules}"
+    order = [path.split("/")[-1] for path in paths]
     rank = {m: i for i, m in enumerate(order)}
     for m in order:
-        imported = _module_imports((ROOT / "jaxquat" / f"{m}.py").read_text())
+        imported = _module_imports(_package_modules()[m].read_text())
         upward = {i for i in imported if rank[i] <= rank[m]}
         assert not upward, f"{m}.py imports {upward}, which the map places above it"
 
@@ -62,13 +84,13 @@ def test_the_module_map_lists_each_module_s_imports():
     modules that module imports (``_checks`` aside), so the map cannot drift from the code."""
     text = (ROOT / "docs" / "architecture.md").read_text()
     block = text.split("```\n")[1]
-    for entry in re.split(r"^(?=\w+\.py)", block, flags=re.M):
-        name = re.match(r"(\w+)\.py", entry)
+    for entry in re.split(r"^(?=[\w/]+\.py)", block, flags=re.M):
+        name = re.match(r"(?:\w+/)?(\w+)\.py", entry)
         if name is None:
             continue
         listed = re.search(r"\(([^()]*)\)\s*$", entry.rstrip()).group(1)
         listed = set() if listed == "none" else {x.strip() for x in listed.split(",")}
-        imported = _module_imports((ROOT / "jaxquat" / f"{name.group(1)}.py").read_text())
+        imported = _module_imports(_package_modules()[name.group(1)].read_text())
         assert listed == imported - {"_checks"}, f"{name.group(1)}.py: map lists {listed}, imports {imported}"
 
 
@@ -78,7 +100,7 @@ def test_the_package_re_exports_every_module_name_by_name():
     import importlib
 
     text = (ROOT / "jaxquat" / "__init__.py").read_text()
-    modules = re.findall(r"^from \.(\w+) import \(", text, re.M)
+    modules = re.findall(r"^from \.([\w.]+) import \(", text, re.M)
     exported = [name for m in modules for name in importlib.import_module(f"jaxquat.{m}").__all__]
     assert len(exported) == len(set(exported))
     assert sorted(jq.__all__) == sorted(exported)
@@ -98,9 +120,9 @@ def test_no_module_imports_another_module_s_private_names():
     the examples and benchmarks."""
     offenders = []
     for folder in ("jaxquat", "examples", "benchmarks"):
-        for path in (ROOT / folder).glob("*.py"):
+        for path in (ROOT / folder).rglob("*.py"):
             src = path.read_text()
-            for names in re.findall(r"^from (?:\.|jaxquat\.)\w+ import (\([^)]*\)|[^\n]*)", src, re.M):
+            for names in re.findall(r"^from (?:\.+|jaxquat\.)(?:\w+\.)*\w+ import (\([^)]*\)|[^\n]*)", src, re.M):
                 private = [n.strip() for n in names.strip("()").split(",") if n.strip().startswith("_")]
                 offenders += [f"{path.relative_to(ROOT)}: {n}" for n in private]
     assert not offenders, offenders
@@ -110,9 +132,9 @@ def test_the_api_reference_covers_every_public_module():
     """docs/api/*.md (built by ``make docs``, mkdocstrings) renders each module that
     ``jaxquat/__init__.py`` re-exports, once, and mkdocs.yml's nav lists every page."""
     text = (ROOT / "jaxquat" / "__init__.py").read_text()
-    modules = set(re.findall(r"^from \.(\w+) import \(", text, re.M))
+    modules = set(re.findall(r"^from \.([\w.]+) import \(", text, re.M))
     pages = sorted((ROOT / "docs" / "api").glob("*.md"))
-    rendered = [m for page in pages for m in re.findall(r"^::: jaxquat\.(\w+)$", page.read_text(), re.M)]
+    rendered = [m for page in pages for m in re.findall(r"^::: jaxquat\.([\w.]+)$", page.read_text(), re.M)]
     assert sorted(rendered) == sorted(modules), set(rendered) ^ modules
     nav = (ROOT / "mkdocs.yml").read_text()
     assert all(f"api/{page.name}" in nav for page in pages)

@@ -12,7 +12,7 @@ import scipy.special as sp
 from hypothesis import given
 from jax.test_util import check_grads  # eps=1e-6: its default 1e-4 step is too coarse for K near m = 1
 
-from jaxquat import elliptic as el
+from jaxquat.mechanics import elliptic as el
 from jaxquat import ellipj, ellipk, elliprf, elliprj
 from helpers import DTYPE, NP_DTYPE, X64, assert_close, seeds
 

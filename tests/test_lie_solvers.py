@@ -327,7 +327,7 @@ def test_midpoint_weights_are_those_of_diffrax_s_own_dense_output(solver, source
     of the same tableau at the step's midpoint, bit for bit (computed in float64 always), and
     integrate a constant to the midpoint (sum b_i(1/2) = 1/2: to 1e-14, since Dopri8's
     rational coefficients are rounded and the 14 terms, up to 0.31 each, sum to 1.6e-15 off)."""
-    from jaxquat.lie_solvers import midpoint_weights
+    from jaxquat.integration.lie_solvers import midpoint_weights
 
     np.testing.assert_array_equal(solver.mid_weights, midpoint_weights(source))
     assert solver.mid_weights.dtype == np.float64 and len(solver.mid_weights) == source.tableau.num_stages

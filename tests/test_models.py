@@ -1,4 +1,4 @@
-"""The vehicle models (``jaxquat/models.py``): each field against an independent NumPy one,
+"""The vehicle models (``jaxquat/mechanics/models.py``): each field against an independent NumPy one,
 the gyrostat's conservation laws by autodiff (which is what checks the derived equations),
 the wheel limits, gradients, jit/vmap and bad input."""
 

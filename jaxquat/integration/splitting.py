@@ -42,10 +42,10 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from . import _arrays, _quaternion, _rotation, _safe, _trig
+from .. import _arrays, _quaternion, _rotation, _safe, _trig
 from .lie_solvers import SlerpInterpolation, leaf_flags, unit
-from .rigid_body import RigidBody
-from .torque_free import propagate
+from ..mechanics.rigid_body import RigidBody
+from ..mechanics.torque_free import propagate
 
 __all__ = ["AbstractSplitting", "RigidBodySplit", "RigidBodySplit4", "EulerPoinsotSplit", "EulerPoinsotSplit4"]
 

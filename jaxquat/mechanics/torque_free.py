@@ -45,7 +45,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _arrays, _checks, _quaternion, _rotation, _safe, _trig
+from .. import _arrays, _checks, _quaternion, _rotation, _safe, _trig
 from .elliptic import agm, am, amplitude, incomplete, quarter_period, reduced_amplitude, rf, sn_cn_dn
 from .inertia import validated
 
@@ -237,7 +237,7 @@ def euler_poinsot(
     ``t = 10`` agrees with DOP853 to 1e-13 rad in float64 and 1.2e-5 in float32).
     Differentiable in every argument, in both modes, including bodies with two
     equal moments and states on the separatrix (the amplitude's derivative in
-    ``m`` is the regular Carlson form, see :mod:`jaxquat.elliptic`). Within ``p``
+    ``m`` is the regular Carlson form, see :mod:`jaxquat.mechanics.elliptic`). Within ``p``
     of a spin about the middle axis the derivative carries a relative error of
     about ``eps / p`` (measured 1e-11 to 2e-10 at ``p = 1e-6`` in float64). Exactly at a steady spin
     about the middle axis, or about an axis in a plane of equal moments, the

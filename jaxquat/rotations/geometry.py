@@ -1,8 +1,8 @@
 """Geometry of rotations: the angle of a rotation, the angle between two, and the chordal mean of a set.
 
 Wahba's problem (``align_vectors``) lives with the other attitude-determination methods in
-:mod:`jaxquat.determination`; uniform random rotations (``random``) beside ``identity`` in
-:mod:`jaxquat.algebra`.
+:mod:`jaxquat.rotations.determination`; uniform random rotations (``random``) beside ``identity`` in
+:mod:`jaxquat.rotations.algebra`.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _arrays, _checks, _quaternion, _rotation, _safe, _trig
+from .. import _arrays, _checks, _quaternion, _rotation, _safe, _trig
 
 __all__ = ["angle", "angle_between", "mean"]
 

@@ -29,7 +29,7 @@ import numpy as np
 from jax import Array
 from jaxtyping import Float
 
-from . import _arrays, _checks, _quaternion, _rotation
+from .. import _arrays, _checks, _quaternion, _rotation
 
 __all__ = ["RotationSpline"]
 

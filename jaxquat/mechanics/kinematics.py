@@ -27,7 +27,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _arrays, _checks, _quaternion, _rates, _rotation
+from .. import _arrays, _checks, _quaternion, _rates, _rotation
 
 __all__ = [
     "rate_matrix",

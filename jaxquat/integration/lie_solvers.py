@@ -51,7 +51,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from . import _quaternion, _rates, _rotation, _safe
+from .. import _quaternion, _rates, _rotation, _safe
 
 __all__ = [
     "AbstractLeafInterpolation",

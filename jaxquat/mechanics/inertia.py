@@ -24,7 +24,7 @@ import numpy as np
 from jax import Array
 from jaxtyping import Bool, Float
 
-from . import _arrays, _checks, _rotation
+from .. import _arrays, _checks, _rotation
 
 __all__ = [
     "inertia_from_points",

@@ -1,6 +1,6 @@
 """Interpolation between rotations: slerp, and Shoemake's squad through a sequence of keys.
 
-Smooth timed splines with continuous angular acceleration are in :mod:`jaxquat.spline`.
+Smooth timed splines with continuous angular acceleration are in :mod:`jaxquat.manifold.spline`.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks, _quaternion, _rotation
+from .. import _checks, _quaternion, _rotation
 
 __all__ = ["slerp", "squad", "squad_control_points", "squad_segment"]
 

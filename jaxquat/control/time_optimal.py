@@ -1,7 +1,7 @@
 """Minimum-time reorientation of a rigid body under per-axis torque bounds.
 
 :func:`minimum_time_reorientation` solves it by direct multiple shooting and the interior-point
-method of :mod:`jaxquat.optimal_control` (the default), or by the single-shooting solver of this
+method of :mod:`jaxquat.control.optimal_control` (the default), or by the single-shooting solver of this
 module (``method="single_shooting"``), described here.
 
 Problem: find the final time ``T`` and a body torque ``u(t)`` with ``|u_i| <= b_i`` that
@@ -13,7 +13,7 @@ Transcription (direct, single shooting): time runs on ``s in [0, 1]`` with
 ``u_i = b_i sin(p_i)`` (smooth, bounded, and saturation is a stationary point at
 ``p = +-pi/2``, so bang-bang arcs are reachable without infinite parameters);
 ``T = T_ref exp(sigma)``. Each piece is integrated with ``substeps`` RKMK4 steps
-(:mod:`jaxquat.lie_solvers`; ``|q| = 1`` to rounding). The six terminal conditions
+(:mod:`jaxquat.integration.lie_solvers`; ``|q| = 1`` to rounding). The six terminal conditions
 ``c = (minus(q(T), qf), w(T) - wf)`` enter an augmented Lagrangian
 ``T + lambda . c + mu/2 |c|^2``, minimised over ``(sigma, p)`` by optax L-BFGS; the
 multipliers are updated after each inner solve and ``mu`` grows by 10 when ``|c|``
@@ -59,9 +59,9 @@ from jax import Array
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Float
 
-from . import _checks, _trig
-from .inertia import validated
-from .lie import minus
+from .. import _checks, _trig
+from ..mechanics.inertia import validated
+from ..manifold.lie import minus
 from .optimal_control import (
     ConstrainedReorientation,
     check_grid,
@@ -111,7 +111,7 @@ class Reorientation(NamedTuple):
 
 
 def _rollout(inertia, q0, w0, time, u, substeps: int):
-    """The final state of :func:`jaxquat.optimal_control.held_torque_states` (RKMK4 through the
+    """The final state of :func:`jaxquat.control.optimal_control.held_torque_states` (RKMK4 through the
     piecewise-constant torque ``u`` ``(n, 3)`` over ``[0, time]``)."""
     qs, ws = held_torque_states(inertia, q0, w0, time, u, substeps)
     return qs[-1], ws[-1]

@@ -2,9 +2,9 @@
 
 Unknowns: the node states ``x_k = (q_k, w_k)`` (``k = 1 .. N``), a body torque held constant on
 each of ``N`` equal intervals, and (minimum time) the final time. Each interval is integrated
-by ``substeps`` RKMK4 steps (:mod:`jaxquat.lie_solvers`, ``|q|`` kept to rounding), and its end
+by ``substeps`` RKMK4 steps (:mod:`jaxquat.integration.lie_solvers`, ``|q|`` kept to rounding), and its end
 must meet the next node (the continuity defects). The NLP is solved by the primal-dual
-interior-point method of :mod:`jaxquat.interior_point` with exact second derivatives.
+interior-point method of :mod:`jaxquat.control.interior_point` with exact second derivatives.
 
 Constraints: per-axis torque bounds ``|u_i| <= b_i``; body-rate bounds ``|w_i| <= w_max``;
 keep-out cones (body axis ``a`` stays at least ``alpha`` from the inertial direction ``s``:
@@ -35,12 +35,12 @@ import numpy as np
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks, _quaternion, _rates
-from .fixed_step import solve_fixed_steps
-from .inertia import validated
+from .. import _checks, _quaternion, _rates
+from ..integration.fixed_step import solve_fixed_steps
+from ..mechanics.inertia import validated
 from .interior_point import ShootingProblem, solve_shooting
-from .lie import minus, plus
-from .lie_solvers import RKMK4, BodyRateTerm
+from ..manifold.lie import minus, plus
+from ..integration.lie_solvers import RKMK4, BodyRateTerm
 
 __all__ = [
     "ConstrainedReorientation",

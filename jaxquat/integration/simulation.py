@@ -13,14 +13,14 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from . import _arrays, _checks, _quaternion, _rotation
-from .inertia import validated
+from .. import _arrays, _checks, _quaternion, _rotation
+from ..mechanics.inertia import validated
 from .fixed_step import solve_fixed_steps
 from .lie_solvers import RKMK45, AbstractLieSolver, BodyRateTerm
-from .rigid_body import RigidBody
+from ..mechanics.rigid_body import RigidBody
 from .splitting import AbstractSplitting, EulerPoinsotSplit
-from .inertia import principal_axes
-from .torque_free import propagate
+from ..mechanics.inertia import principal_axes
+from ..mechanics.torque_free import propagate
 
 __all__ = ["Simulation", "simulate"]
 

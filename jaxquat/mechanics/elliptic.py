@@ -32,7 +32,7 @@ import jax.numpy as jnp
 from jax import Array, lax
 from jaxtyping import Float
 
-from . import _checks, _trig
+from .. import _checks, _trig
 
 __all__ = ["ellipj", "ellipk", "elliprf", "elliprj"]
 

@@ -19,7 +19,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _arrays, _checks, _quaternion, _rotation, _safe
+from .. import _arrays, _checks, _quaternion, _rotation, _safe
 
 __all__ = ["triad", "quest", "align_vectors", "attitude_covariance"]
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks, _quaternion, _rotation, _safe
+from .. import _checks, _quaternion, _rotation, _safe
 
 __all__ = [
     "plus",

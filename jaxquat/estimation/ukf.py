@@ -2,7 +2,7 @@
 
 The sigma points live on the group, as in Crassidis & Markley's USQUE (2003) and the UKF-M of
 Brossard, Barrau & Bonnabel (2020), written with this library's retraction: with the error state
-``x = (dtheta, dbias)`` (``q_true = q Exp(dtheta)``, body frame, as in :mod:`jaxquat.mekf`) and
+``x = (dtheta, dbias)`` (``q_true = q Exp(dtheta)``, body frame, as in :mod:`jaxquat.estimation.mekf`) and
 ``L L^T = (6 + kappa) P``, the 13 points are ``q Exp(d_i)``, ``bias + e_i`` for
 ``(d_i, e_i) = 0, +-L[:, j]``, with Julier's weights ``kappa / (6 + kappa)`` (centre) and
 ``1 / (2 (6 + kappa))``; ``kappa = 1`` by default, which keeps every weight positive.
@@ -14,7 +14,7 @@ Brossard, Barrau & Bonnabel (2020), written with this library's retraction: with
 * update: the points' predicted measurements ``R(q_i)^T r`` give ``P_zz`` (plus ``R``) and
   ``P_xz``; ``K = P_xz P_zz^-1``, reset ``q <- q Exp(dtheta)``, ``P <- P - K P_zz K^T``.
 
-Measurements and noise are as in :mod:`jaxquat.mekf` (NaN rows are missing, same statistics),
+Measurements and noise are as in :mod:`jaxquat.estimation.mekf` (NaN rows are missing, same statistics),
 and the state and result types are shared with it. Unlike the MEKF, the sigma points need a
 Cholesky factor of ``P``: a ``P`` that is not positive definite (a correlation of exactly 1, say)
 gives NaN, where the MEKF would carry it on.
@@ -29,7 +29,7 @@ import numpy as np
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks, _quaternion, _rotation
+from .. import _checks, _quaternion, _rotation
 from .mekf import (
     PREDICT_SIGNATURE,
     QUATERNION_SIGNATURE,

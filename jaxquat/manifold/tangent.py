@@ -31,7 +31,7 @@ import optax
 from jax import Array
 from jaxtyping import Float
 
-from . import _checks, _rates
+from .. import _checks, _rates
 from .lie import plus
 
 __all__ = ["tangent_gradient", "tangent_gradients", "tangent_optimizer", "apply_tangent_updates"]

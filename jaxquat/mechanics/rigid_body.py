@@ -8,7 +8,8 @@ is differentiable through every diffrax adjoint) whose call
     dw_b/dt = I^-1 (M_b(t, q, w_b, args) - w_b x I w_b)   (Euler, [S] eq. (19))
 
 so ``diffrax.ODETerm(RigidBody(I, torque))`` drops into ``diffeqsolve`` with any
-diffrax solver, or with the Lie-group solvers of :mod:`jaxquat.lie_solvers` and :mod:`jaxquat.splitting`.
+diffrax solver, or with the Lie-group solvers of :mod:`jaxquat.integration.lie_solvers` and
+:mod:`jaxquat.integration.splitting`.
 ``EulerParameterBody`` is the same body on ``y = (q, qdot)`` with Chou's
 closed-form ``qddot`` (:func:`jaxquat.euler_parameter_acceleration`).
 """
@@ -22,7 +23,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _arrays, _checks, _quaternion, _rates
+from .. import _arrays, _checks, _quaternion, _rates
 from .inertia import validated
 from .torques import as_body_torque
 

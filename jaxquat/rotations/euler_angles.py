@@ -18,7 +18,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _arrays, _checks, _quaternion, _safe, _trig
+from .. import _arrays, _checks, _quaternion, _safe, _trig
 
 __all__ = ["from_euler", "to_euler"]
 

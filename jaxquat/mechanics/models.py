@@ -20,7 +20,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jax import Array
 
-from . import _arrays, _checks, _quaternion, _rates
+from .. import _arrays, _checks, _quaternion, _rates
 from .inertia import validated
 
 __all__ = ["Quadrotor", "ReactionWheelSpacecraft"]

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _arrays, _checks, _quaternion, _safe
+from .. import _arrays, _checks, _quaternion, _safe
 
 __all__ = [
     "multiply",

@@ -1,9 +1,9 @@
 """Rigid-body rotational dynamics: Euler's equations and the Euler-parameter equations of motion.
 
 Conventions. ``inertia`` is always the body-frame tensor (``(..., 3, 3)``, full
-symmetric; see :mod:`jaxquat.inertia`). Angular velocities, accelerations,
+symmetric; see :mod:`jaxquat.mechanics.inertia`). Angular velocities, accelerations,
 torques and momenta are resolved in the frame named by ``frame`` (``"body"``
-or ``"space"``, as in :mod:`jaxquat.kinematics`), and results are returned in
+or ``"space"``, as in :mod:`jaxquat.mechanics.kinematics`), and results are returned in
 that same frame. ``q`` maps body to space and is assumed unit (Euler
 parameters); functions that take ``qdot`` assume ``q.qdot = 0``.
 
@@ -22,7 +22,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _arrays, _checks, _quaternion, _rates
+from .. import _arrays, _checks, _quaternion, _rates
 from .inertia import validated
 
 __all__ = [

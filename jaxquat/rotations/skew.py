@@ -10,7 +10,7 @@ from __future__ import annotations
 from jax import Array
 from jaxtyping import Float
 
-from . import _arrays, _checks
+from .. import _arrays, _checks
 
 __all__ = ["hat", "vee"]
 

@@ -2,7 +2,7 @@
 
 Rotation matrices (act on column vectors, ``v' = R v``), rotation vectors,
 axis-angle pairs and modified Rodrigues parameters (MRP). Euler angles live in
-:mod:`jaxquat.euler_angles`.
+:mod:`jaxquat.rotations.euler_angles`.
 
 Source documents: Tasora (2016) [T], Chou (1992) [C], Schwab (2002) [S].
 """
@@ -13,7 +13,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _arrays, _checks, _quaternion, _rotation, _safe, _trig
+from .. import _arrays, _checks, _quaternion, _rotation, _safe, _trig
 
 __all__ = [
     "to_matrix",

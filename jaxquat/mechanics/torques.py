@@ -18,7 +18,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import Float
 
-from . import _arrays, _checks, _quaternion, _trig
+from .. import _arrays, _checks, _quaternion, _trig
 
 __all__ = ["as_body_torque", "gravity_gradient_torque", "circular_orbit_gravity_gradient"]
 
