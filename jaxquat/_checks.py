@@ -174,6 +174,42 @@ def vector_pairs(a: Any, b: Any, w: Any, names: tuple[str, str]) -> tuple[Array,
     return a, b, w
 
 
+# The kinds of argument `arguments` validates: the check, and the number of trailing core axes
+# (the rest are batch axes).
+_KINDS = {
+    "quaternion": (lambda x, n: quat(x, n), 1),
+    "vector": (lambda x, n: vec3(x, n), 1),
+    "matrix": (lambda x, n: mat3(x, n), 2),
+    "inertia": (lambda x, n: inertia(x, n), 2),
+    "scalar": (lambda x, n: scalar_like(x, n), 0),
+    # one per item of a set: (..., n, 4), (..., n, 3), (..., n)
+    "quaternions": (lambda x, n: quat(x, n), 2),
+    "vectors": (lambda x, n: vec3(x, n), 2),
+    "scalars": (lambda x, n: scalar_like(x, n), 1),
+}
+
+
+def arguments(**named: tuple[Any, str]) -> list[Array]:
+    """Validate a function's array arguments and broadcast their batch axes: the one
+    validate-and-broadcast step of every public function.
+
+    Each keyword is the argument's name (as errors print it) and its value a pair
+    ``(value, kind)``, kind one of ``"quaternion"`` ``(..., 4)``, ``"vector"`` ``(..., 3)``,
+    ``"matrix"`` / ``"inertia"`` ``(..., 3, 3)`` or ``"scalar"`` ``(...)``, or a set of one
+    of those per item, ``"quaternions"`` ``(..., n, 4)``, ``"vectors"`` ``(..., n, 3)`` or
+    ``"scalars"`` ``(..., n)`` (the set's axis ``n`` is not broadcast). Returns the
+    arrays in keyword order, in one dtype, their batch axes broadcast to one shape and their
+    core axes kept. An argument already validated further (an inertia's values) passes
+    through its shape check unchanged.
+    """
+    arrays, cores = [], []
+    for name, (value, kind) in named.items():
+        check, core = _KINDS[kind]
+        arrays.append(check(value, name))
+        cores.append(core)
+    return broadcast_batch(arrays, list(named), cores)
+
+
 def broadcast_batch(arrays: list[Array], names: list[str], core_ndims: list[int]) -> list[Array]:
     """Broadcast the leading (batch) axes of several arrays, keeping their core axes.
 

@@ -122,14 +122,14 @@ def simulate(
     """
     # the values of a concrete ts, taken before any jnp op (under jit those return tracers)
     ts_host = None if _checks.is_traced(ts) else np.asarray(ts, dtype=np.float64)
-    q0 = _checks.quat(q0, "q0")
-    omega0 = _checks.vec3(omega0, "omega0")
     inertia = validated(inertia)  # values too, wherever they are concrete: every path trusts them after this
     ts = _checks.scalar_like(ts, "ts")
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(f"argument 'ts' must be shaped (n,) with n >= 2, got shape {tuple(ts.shape)}")
     shared_inertia = inertia if inertia.ndim == 2 else None  # one tensor for every body
-    q0, omega0, inertia = _checks.broadcast_batch([q0, omega0, inertia], ["q0", "omega0", "inertia"], [1, 1, 2])
+    q0, omega0, inertia = _checks.arguments(
+        q0=(q0, "quaternion"), omega0=(omega0, "vector"), inertia=(inertia, "inertia")
+    )
     ts = ts.astype(q0.dtype)
     ts = _check_times(ts, ts_host, dt0, solver)
     if progress:

@@ -28,10 +28,7 @@ def slerp(
     gives ``p``, ``t = 1`` gives ``q'``; ``t`` outside [0, 1] extrapolates.
     Assumes unit ``p`` and ``q``. ``p``, ``q`` and ``t`` broadcast over batch axes.
     """
-    p = _checks.quat(p, "p")
-    q = _checks.quat(q, "q")
-    t = _checks.scalar_like(t, "t")
-    p, q, t = _checks.broadcast_batch([p, q, t], ["p", "q", "t"], [1, 1, 0])
+    p, q, t = _checks.arguments(p=(p, "quaternion"), q=(q, "quaternion"), t=(t, "scalar"))
     return _rotation.slerp(p, q, t)
 
 

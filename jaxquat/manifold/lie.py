@@ -40,9 +40,7 @@ def plus(q: Float[Array, "*batch 4"], delta: Float[Array, "*batch 3"], frame: st
     Keeps ``|q|``: a unit ``q`` stays unit to rounding, with no renormalisation.
     """
     frame = _checks.frame(frame)
-    q = _checks.quat(q)
-    delta = _checks.vec3(delta, "delta")
-    q, delta = _checks.broadcast_batch([q, delta], ["q", "delta"], [1, 1])
+    q, delta = _checks.arguments(q=(q, "quaternion"), delta=(delta, "vector"))
     e = _rotation.from_rotvec(delta)
     return _quaternion.multiply(q, e) if frame == "body" else _quaternion.multiply(e, q)
 
@@ -56,9 +54,7 @@ def minus(q1: Float[Array, "*batch 4"], q0: Float[Array, "*batch 4"], frame: str
     shortest answers).
     """
     frame = _checks.frame(frame)
-    q1 = _checks.quat(q1, "q1")
-    q0 = _checks.quat(q0, "q0")
-    q1, q0 = _checks.broadcast_batch([q1, q0], ["q1", "q0"], [1, 1])
+    q1, q0 = _checks.arguments(q1=(q1, "quaternion"), q0=(q0, "quaternion"))
     q1, q0 = _safe.rescaled(q1), _safe.rescaled(q0)
     rel = (
         _quaternion.multiply(_quaternion.conjugate(q0), q1)

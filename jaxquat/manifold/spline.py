@@ -134,7 +134,7 @@ class RotationSpline:
                 f"argument 'times' must be shaped (n,) with n = {quats.shape[0]} (one per key), got shape "
                 f"{tuple(times.shape)}"
             )
-        times, quats = _checks.broadcast_batch([times, quats], ["times", "quats"], [1, 2])
+        times, quats = _checks.arguments(times=(times, "scalars"), quats=(quats, "quaternions"))
         if not _checks.is_traced(times) and not np.all(np.diff(np.asarray(times, dtype=np.float64)) > 0):
             raise ValueError(f"argument 'times' must be strictly increasing, got {np.asarray(times).tolist()}")
         self.times = times  # the input dtype; keys and coefficients in the working dtype

@@ -47,9 +47,7 @@ def tangent_gradient(
     The component of ``g`` along ``q`` (which only changes ``|q|``) drops out.
     """
     frame = _checks.frame(frame)
-    q = _checks.quat(q)
-    grad = _checks.quat(grad, "grad")
-    q, grad = _checks.broadcast_batch([q, grad], ["q", "grad"], [1, 1])
+    q, grad = _checks.arguments(q=(q, "quaternion"), grad=(grad, "quaternion"))
     return 0.5 * _rates.vec_rate(q, grad, frame)  # the same map as a generalised force -> torque
 
 

@@ -40,17 +40,6 @@ __all__ = [
 ]
 
 
-def _args(q, vectors: dict, inertia, quats: dict | None = None):
-    """Validate and broadcast ``q``, 3-vectors, optional extra quaternions and the inertia."""
-    names = ["q", *(quats or {}), *vectors, "inertia"]
-    arrays = [_checks.quat(q, "q")]
-    arrays += [_checks.quat(v, n) for n, v in (quats or {}).items()]
-    arrays += [_checks.vec3(v, n) for n, v in vectors.items()]
-    arrays.append(validated(inertia))
-    cores = [1] * (len(arrays) - 1) + [2]
-    return _checks.broadcast_batch(arrays, names, cores)
-
-
 def _torque_or_zero(torque, like) -> Array:
     return jnp.zeros(jnp.shape(like)[:-1] + (3,), dtype=jnp.result_type(like)) if torque is None else torque
 
@@ -73,7 +62,9 @@ def angular_momentum(
     ``q`` is only used when ``frame="space"``.
     """
     frame = _checks.frame(frame)
-    q, omega, inertia = _args(q, {"omega": omega}, inertia)
+    q, omega, inertia = _checks.arguments(
+        q=(q, "quaternion"), omega=(omega, "vector"), inertia=(validated(inertia), "inertia")
+    )
     h = _arrays.matvec(inertia, _rates.to_body(q, omega, frame))
     return _rates.from_body(q, h, frame)
 
@@ -90,7 +81,9 @@ def kinetic_energy(
     (23)'s mass matrix), and ``2 T`` is Schwab's multiplier ([S] eq. (24)).
     """
     frame = _checks.frame(frame)
-    q, omega, inertia = _args(q, {"omega": omega}, inertia)
+    q, omega, inertia = _checks.arguments(
+        q=(q, "quaternion"), omega=(omega, "vector"), inertia=(validated(inertia), "inertia")
+    )
     w = _rates.to_body(q, omega, frame)
     return _rates.kinetic_energy(w, _arrays.matvec(inertia, w))
 
@@ -111,7 +104,9 @@ def angular_acceleration(
     """
     frame = _checks.frame(frame)
     torque = _torque_or_zero(torque, omega)
-    q, omega, torque, inertia = _args(q, {"omega": omega, "torque": torque}, inertia)
+    q, omega, torque, inertia = _checks.arguments(
+        q=(q, "quaternion"), omega=(omega, "vector"), torque=(torque, "vector"), inertia=(validated(inertia), "inertia")
+    )
     w = _rates.to_body(q, omega, frame)
     m = _rates.to_body(q, torque, frame)
     return _rates.from_body(q, _rates.euler_body(inertia, w, m), frame)
@@ -127,7 +122,9 @@ def inverse_dynamics(
     """Torque that produces a given motion: ``M = I a + w x I w`` in the body frame ([S] eq. (19),
     [C] eq. (66)); ``M_s = I0 a_s + w_s x I0 w_s`` in space ([C] eq. (62))."""
     frame = _checks.frame(frame)
-    q, omega, alpha, inertia = _args(q, {"omega": omega, "alpha": alpha}, inertia)
+    q, omega, alpha, inertia = _checks.arguments(
+        q=(q, "quaternion"), omega=(omega, "vector"), alpha=(alpha, "vector"), inertia=(validated(inertia), "inertia")
+    )
     w = _rates.to_body(q, omega, frame)
     a = _rates.to_body(q, alpha, frame)
     return _rates.from_body(q, _euler_torque_body(inertia, w, a), frame)
@@ -159,7 +156,12 @@ def euler_parameter_acceleration(
     """
     frame = _checks.frame(frame)
     torque = _torque_or_zero(torque, qdot)
-    q, qdot, torque, inertia = _args(q, {"torque": torque}, inertia, {"qdot": qdot})
+    q, qdot, torque, inertia = _checks.arguments(
+        q=(q, "quaternion"),
+        qdot=(qdot, "quaternion"),
+        torque=(torque, "vector"),
+        inertia=(validated(inertia), "inertia"),
+    )
     w = _rates.omega_from_qdot(q, qdot, "body")
     a = _rates.euler_body(inertia, w, _rates.to_body(q, torque, frame))
     return _rates.qddot_from_alpha(q, qdot, a, "body")
@@ -180,7 +182,12 @@ def euler_parameter_torque(
     ``a = 2 vec(q* qddot)`` (the inverse of :func:`euler_parameter_acceleration`).
     """
     frame = _checks.frame(frame)
-    q, qdot, qddot, inertia = _args(q, {}, inertia, {"qdot": qdot, "qddot": qddot})
+    q, qdot, qddot, inertia = _checks.arguments(
+        q=(q, "quaternion"),
+        qdot=(qdot, "quaternion"),
+        qddot=(qddot, "quaternion"),
+        inertia=(validated(inertia), "inertia"),
+    )
     w = _rates.omega_from_qdot(q, qdot, "body")
     a = _rates.alpha_from_qddot(q, qdot, qddot, "body")
     return _rates.from_body(q, _euler_torque_body(inertia, w, a), frame)
@@ -204,7 +211,7 @@ def euler_parameter_mass_matrix(
     rescaling ``q`` is not a motion); the norm constraint row of
     :func:`euler_parameter_augmented_system` makes the system solvable.
     """
-    q, inertia = _args(q, {}, inertia)
+    q, inertia = _checks.arguments(q=(q, "quaternion"), inertia=(validated(inertia), "inertia"))
     return 4.0 * _quat_inertia_product(q, inertia)
 
 
@@ -218,9 +225,7 @@ def generalized_force(
     ``dw_b = 2 vec(q* dq)`` (unit ``q``).
     """
     frame = _checks.frame(frame)
-    q = _checks.quat(q)
-    torque = _checks.vec3(torque, "torque")
-    q, torque = _checks.broadcast_batch([q, torque], ["q", "torque"], [1, 1])
+    q, torque = _checks.arguments(q=(q, "quaternion"), torque=(torque, "vector"))
     m = _quaternion.pure(torque)
     return 2.0 * (_quaternion.multiply(q, m) if frame == "body" else _quaternion.multiply(m, q))
 
@@ -235,9 +240,7 @@ def torque_from_generalized_force(
     rotation and is discarded.
     """
     frame = _checks.frame(frame)
-    q = _checks.quat(q)
-    force = _checks.quat(force, "force")
-    q, force = _checks.broadcast_batch([q, force], ["q", "force"], [1, 1])
+    q, force = _checks.arguments(q=(q, "quaternion"), force=(force, "quaternion"))
     return 0.5 * _rates.vec_rate(q, force, frame)
 
 
@@ -265,7 +268,12 @@ def euler_parameter_augmented_system(
     """
     frame = _checks.frame(frame)
     torque = _torque_or_zero(torque, qdot)
-    q, qdot, torque, inertia = _args(q, {"torque": torque}, inertia, {"qdot": qdot})
+    q, qdot, torque, inertia = _checks.arguments(
+        q=(q, "quaternion"),
+        qdot=(qdot, "quaternion"),
+        torque=(torque, "vector"),
+        inertia=(validated(inertia), "inertia"),
+    )
     mass = 4.0 * _quat_inertia_product(q, inertia)
     gyro = 8.0 * _quat_inertia_product(qdot, inertia) @ q[..., None]
     m = _quaternion.pure(_rates.to_body(q, torque, frame))
@@ -285,6 +293,8 @@ def norm_constraint_multiplier(
     ``lambda = 4 q^T Qdot diag(0, I) Qdot^T q = w_b . I w_b``: twice the
     rotational kinetic energy.
     """
-    q, qdot, inertia = _args(q, {}, inertia, {"qdot": qdot})
+    q, qdot, inertia = _checks.arguments(
+        q=(q, "quaternion"), qdot=(qdot, "quaternion"), inertia=(validated(inertia), "inertia")
+    )
     w = _rates.omega_from_qdot(q, qdot, "body")
     return _arrays.dot(w, _arrays.matvec(inertia, w))

@@ -139,10 +139,10 @@ def quarter_period(m: Array, mc: Array) -> Array:
 def _broadcast(args, names):
     """The arguments validated and broadcast, in the working dtype (float32 for half
     precision), and the dtype the results are cast back to."""
-    arrays = [_checks.as_float_array(a, n) for a, n in zip(args, names)]
-    dtype = jnp.result_type(*arrays)
+    arrays = _checks.arguments(**{n: (a, "scalar") for a, n in zip(args, names)})
+    dtype = arrays[0].dtype
     work = _checks.working_dtype(dtype)
-    return jnp.broadcast_arrays(*[a.astype(work) for a in arrays]), dtype
+    return [a.astype(work) for a in arrays], dtype
 
 
 def ellipj(u: Float[Array, "*batch"], m: Float[Array, "*batch"]) -> tuple[Array, Array, Array, Array]:

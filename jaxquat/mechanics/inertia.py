@@ -50,7 +50,7 @@ def inertia_from_points(
     if r.ndim < 2:
         raise ValueError(f"argument 'positions' must be shaped (..., n, 3), got shape {tuple(r.shape)}")
     m = _checks.per_item(masses, "masses", r, "positions")
-    r, m = _checks.broadcast_batch([r, m], ["positions", "masses"], [2, 1])
+    r, m = _checks.arguments(positions=(r, "vectors"), masses=(m, "scalars"))
     outer = r[..., :, None] * r[..., None, :]
     eye = jnp.broadcast_to(jnp.eye(3, dtype=r.dtype), outer.shape)
     per_point = jnp.sum(r * r, -1)[..., None, None] * eye - outer
@@ -62,9 +62,7 @@ def rotate_inertia(q: Float[Array, "*batch 4"], inertia: Float[Array, "*batch 3 
 
     ``rotate_inertia(conjugate(q), I0)`` goes back. Assumes ``|q| = 1``.
     """
-    q = _checks.quat(q)
-    inertia = _checks.inertia(inertia)
-    q, inertia = _checks.broadcast_batch([q, inertia], ["q", "inertia"], [1, 2])
+    q, inertia = _checks.arguments(q=(q, "quaternion"), inertia=(inertia, "inertia"))
     a = _rotation.to_matrix(q)
     return a @ inertia @ jnp.swapaxes(a, -1, -2)
 
@@ -73,9 +71,7 @@ def inertia_rate(
     inertia_space: Float[Array, "*batch 3 3"], omega_space: Float[Array, "*batch 3"]
 ) -> Float[Array, "*batch 3 3"]:
     """Time derivative of the space-frame inertia of a rigid body: ``dI0/dt = hat(w) I0 - I0 hat(w)``, [C] eq. (C4)."""
-    i0 = _checks.inertia(inertia_space, "inertia_space")
-    w = _checks.vec3(omega_space, "omega_space")
-    i0, w = _checks.broadcast_batch([i0, w], ["inertia_space", "omega_space"], [2, 1])
+    i0, w = _checks.arguments(inertia_space=(inertia_space, "inertia"), omega_space=(omega_space, "vector"))
     wh = _arrays.hat(w)
     return wh @ i0 - i0 @ wh
 

@@ -42,11 +42,6 @@ __all__ = [
 ]
 
 
-def _prepare(arrays, names, kinds):
-    checked = [(_checks.quat if k == 4 else _checks.vec3)(a, n) for a, n, k in zip(arrays, names, kinds)]
-    return _checks.broadcast_batch(checked, list(names), [1] * len(checked))
-
-
 def rate_matrix(q: Float[Array, "*batch 4"], frame: str = "body") -> Float[Array, "*batch 3 4"]:
     """The 3x4 matrix ``E`` with ``w = 2 E qdot`` and ``qdot = 1/2 E^T w`` (unit ``q``).
 
@@ -83,7 +78,7 @@ def qdot_from_omega(
     ``omega_from_qdot(q, qdot_from_omega(q, w)) == w`` for every non-zero ``q``.
     """
     frame = _checks.frame(frame)
-    q, omega = _prepare([q, omega], ["q", "omega"], [4, 3])
+    q, omega = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"))
     return _rates.qdot_from_omega(q, omega, frame)
 
 
@@ -102,7 +97,7 @@ def omega_from_qdot(
     drift. For unit ``q`` it is exactly the printed formula.
     """
     frame = _checks.frame(frame)
-    q, qdot = _prepare([q, qdot], ["q", "qdot"], [4, 4])
+    q, qdot = _checks.arguments(q=(q, "quaternion"), qdot=(qdot, "quaternion"))
     return _rates.omega_from_qdot(q, qdot, frame)
 
 
@@ -127,7 +122,7 @@ def qddot_from_alpha(
     ``alpha`` exactly and ``d^2|q|^2/dt^2 = 0`` (the norm rate is not accelerated).
     """
     frame = _checks.frame(frame)
-    q, qdot, alpha = _prepare([q, qdot, alpha], ["q", "qdot", "alpha"], [4, 4, 3])
+    q, qdot, alpha = _checks.arguments(q=(q, "quaternion"), qdot=(qdot, "quaternion"), alpha=(alpha, "vector"))
     return _rates.qddot_from_alpha(q, qdot, alpha, frame)
 
 
@@ -150,7 +145,7 @@ def alpha_from_qddot(
     and ``qdot q*`` in space), the angular acceleration of ``q/|q|``.
     """
     frame = _checks.frame(frame)
-    q, qdot, qddot = _prepare([q, qdot, qddot], ["q", "qdot", "qddot"], [4, 4, 4])
+    q, qdot, qddot = _checks.arguments(q=(q, "quaternion"), qdot=(qdot, "quaternion"), qddot=(qddot, "quaternion"))
     return _rates.alpha_from_qddot(q, qdot, qddot, frame)
 
 
@@ -164,7 +159,7 @@ def matrix_rate(
     with ``A = to_matrix(q)``. Assumes ``|q| = 1`` (as :func:`jaxquat.to_matrix`).
     """
     frame = _checks.frame(frame)
-    q, omega = _prepare([q, omega], ["q", "omega"], [4, 3])
+    q, omega = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"))
     a = _rotation.to_matrix(q)
     return a @ _arrays.hat(omega) if frame == "body" else _arrays.hat(omega) @ a
 
@@ -182,7 +177,7 @@ def matrix_acceleration(
     ``(hat(w_s) hat(w_s) + hat(a_s)) A`` (space). Assumes ``|q| = 1``.
     """
     frame = _checks.frame(frame)
-    q, omega, alpha = _prepare([q, omega, alpha], ["q", "omega", "alpha"], [4, 3, 3])
+    q, omega, alpha = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"), alpha=(alpha, "vector"))
     a = _rotation.to_matrix(q)
     w = _arrays.hat(omega)
     k = w @ w + _arrays.hat(alpha)
@@ -205,7 +200,9 @@ def point_velocity(
     """
     frame = _checks.frame(frame)
     r_dot = jnp.zeros_like(_checks.vec3(r, "r")) if r_dot is None else r_dot
-    q, omega, r, r_dot = _prepare([q, omega, r, r_dot], ["q", "omega", "r", "r_dot"], [4, 3, 3, 3])
+    q, omega, r, r_dot = _checks.arguments(
+        q=(q, "quaternion"), omega=(omega, "vector"), r=(r, "vector"), r_dot=(r_dot, "vector")
+    )
     w = _rates.to_body(q, omega, frame)
     return _quaternion.rotate(q, jnp.cross(w, r) + r_dot)
 
@@ -232,8 +229,13 @@ def point_acceleration(
     zero = jnp.zeros_like(_checks.vec3(r, "r"))
     r_dot = zero if r_dot is None else r_dot
     r_ddot = zero if r_ddot is None else r_ddot
-    q, omega, alpha, r, r_dot, r_ddot = _prepare(
-        [q, omega, alpha, r, r_dot, r_ddot], ["q", "omega", "alpha", "r", "r_dot", "r_ddot"], [4, 3, 3, 3, 3, 3]
+    q, omega, alpha, r, r_dot, r_ddot = _checks.arguments(
+        q=(q, "quaternion"),
+        omega=(omega, "vector"),
+        alpha=(alpha, "vector"),
+        r=(r, "vector"),
+        r_dot=(r_dot, "vector"),
+        r_ddot=(r_ddot, "vector"),
     )
     w, a = _rates.to_body(q, omega, frame), _rates.to_body(q, alpha, frame)
     acc = jnp.cross(a, r) + jnp.cross(w, jnp.cross(w, r)) + 2.0 * jnp.cross(w, r_dot) + r_ddot

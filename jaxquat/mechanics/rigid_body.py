@@ -88,10 +88,8 @@ def invariants(
     For torque-free motion the energy and ``momentum_space`` are conserved
     (``|momentum_body|`` too); ``norm_error`` is 0 for an exact unit-norm integrator.
     """
-    q = _checks.quat(q)
-    omega = _checks.vec3(omega, "omega")
     inertia = validated(inertia)
-    q, omega, inertia = _checks.broadcast_batch([q, omega, inertia], ["q", "omega", "inertia"], [1, 1, 2])
+    q, omega, inertia = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"), inertia=(inertia, "inertia"))
     norm = jnp.sqrt(jnp.sum(q * q, -1))
     h = _arrays.matvec(inertia, omega)  # body frame, as omega
     return {

@@ -245,12 +245,9 @@ def euler_poinsot(
     linearised precession: the limit of nearby derivatives differs there.
     See the module docstring for the formulas.
     """
-    q0 = _checks.quat(q0, "q0")
-    omega0 = _checks.vec3(omega0, "omega0")
     moments = _validated_moments(moments)
-    t = _checks.scalar_like(t, "t")
-    q0, omega0, moments, t = _checks.broadcast_batch(
-        [q0, omega0, moments, t], ["q0", "omega0", "moments", "t"], [1, 1, 1, 0]
+    q0, omega0, moments, t = _checks.arguments(
+        q0=(q0, "quaternion"), omega0=(omega0, "vector"), moments=(moments, "vector"), t=(t, "scalar")
     )
     dtype = q0.dtype
     work = _checks.working_dtype(dtype)
@@ -266,9 +263,8 @@ def polhode_period(omega0: Float[Array, "*batch 3"], moments: Float[Array, "*bat
     period). Infinite on the separatrix; ``inf`` for steady rotations.
     Notation as :func:`euler_poinsot` (Landau and Lifshitz, section 37).
     """
-    omega0 = _checks.vec3(omega0, "omega0")
     moments = _validated_moments(moments)
-    omega0, moments = _checks.broadcast_batch([omega0, moments], ["omega0", "moments"], [1, 1])
+    omega0, moments = _checks.arguments(omega0=(omega0, "vector"), moments=(moments, "vector"))
     dtype = omega0.dtype
     work = _checks.working_dtype(dtype)
     omega0, moments = omega0.astype(work), moments.astype(work)

@@ -64,11 +64,9 @@ def gravity_gradient_torque(
     potential ``V = -mu/(2|r|^3) (tr I - 3 r_b.I r_b/|r|^2)`` with respect to a
     body-frame rotation (tested). Assumes ``|q| = 1``.
     """
-    q = _checks.quat(q)
-    r = _checks.vec3(position, "position")
-    inertia = _checks.inertia(inertia)
-    mu = _checks.scalar_like(mu, "mu")
-    q, r, inertia, mu = _checks.broadcast_batch([q, r, inertia, mu], ["q", "position", "inertia", "mu"], [1, 1, 2, 0])
+    q, r, inertia, mu = _checks.arguments(
+        q=(q, "quaternion"), position=(position, "vector"), inertia=(inertia, "inertia"), mu=(mu, "scalar")
+    )
     rb = _quaternion.rotate(_quaternion.conjugate(q), r)
     rsq = jnp.sum(r * r, axis=-1)
     coeff = 3.0 * mu / (rsq * rsq * jnp.sqrt(rsq))

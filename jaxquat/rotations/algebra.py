@@ -48,9 +48,7 @@ def multiply(p: Float[Array, "*batch 4"], q: Float[Array, "*batch 4"]) -> Float[
     first, then by ``p`` (active convention). Exact for any quaternions, unit or
     not; batch axes broadcast.
     """
-    p = _checks.quat(p, "p")
-    q = _checks.quat(q, "q")
-    p, q = _checks.broadcast_batch([p, q], ["p", "q"], [1, 1])
+    p, q = _checks.arguments(p=(p, "quaternion"), q=(q, "quaternion"))
     return _quaternion.multiply(p, q)
 
 
@@ -158,9 +156,7 @@ def power(q: Float[Array, "*batch 4"], t: Float[Array, "*batch"] | float) -> Flo
     (``|q^t| = |q|^t``); ``t`` broadcasts against the batch axes of ``q``.
     Smooth at the identity; not differentiable on the negative real axis (see :func:`log`).
     """
-    q = _checks.quat(q)
-    t = _checks.scalar_like(t, "t")
-    q, t = _checks.broadcast_batch([q, t], ["q", "t"], [1, 0])
+    q, t = _checks.arguments(q=(q, "quaternion"), t=(t, "scalar"))
     return _exp(t[..., None] * _log(q))
 
 
@@ -208,9 +204,7 @@ def rotate(q: Float[Array, "*batch 4"], v: Float[Array, "*batch 3"]) -> Float[Ar
     the result is not a rotation of ``v``; normalise first). ``q`` and ``v``
     broadcast over their batch axes.
     """
-    q = _checks.quat(q, "q")
-    v = _checks.vec3(v, "v")
-    q, v = _checks.broadcast_batch([q, v], ["q", "v"], [1, 1])
+    q, v = _checks.arguments(q=(q, "quaternion"), v=(v, "vector"))
     return _quaternion.rotate(q, v)
 
 

@@ -120,9 +120,7 @@ def from_axis_angle(axis: Float[Array, "*batch 3"], angle: Float[Array, "*batch"
     is no rotation to return; under ``jit`` as well, so the rest of a batch is kept).
     ``axis`` and ``angle`` broadcast over their batch axes.
     """
-    axis = _checks.vec3(axis, "axis")
-    angle = _checks.scalar_like(angle, "angle")
-    axis, angle = _checks.broadcast_batch([axis, angle], ["axis", "angle"], [1, 0])
+    axis, angle = _checks.arguments(axis=(axis, "vector"), angle=(angle, "scalar"))
     nsq = _safe.norm_sq(axis)
     unit = axis / jnp.sqrt(jnp.where(nsq > 0, nsq, 1.0))[..., None]
     half = 0.5 * angle

@@ -215,7 +215,7 @@ def attitude_covariance(
     s = _checks.scalar_like(noise, "noise")
     s = jnp.broadcast_to(s, s.shape if s.ndim else b.shape[-2:-1])
     s = _checks.per_item(s, "noise", b, "vectors_body")
-    b, s = _checks.broadcast_batch([b, s], ["vectors_body", "noise"], [2, 1])
+    b, s = _checks.arguments(vectors_body=(b, "vectors"), noise=(s, "scalars"))
     u = _unit(b)
     work = _checks.working_dtype(b.dtype)
     u, s = u.astype(work), s.astype(work)

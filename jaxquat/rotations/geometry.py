@@ -37,9 +37,7 @@ def angle_between(p: Float[Array, "*batch 4"], q: Float[Array, "*batch 4"]) -> F
 
     Symmetric in ``p`` and ``q`` and invariant to the sign of either. Assumes unit inputs.
     """
-    p = _checks.quat(p, "p")
-    q = _checks.quat(q, "q")
-    p, q = _checks.broadcast_batch([p, q], ["p", "q"], [1, 1])
+    p, q = _checks.arguments(p=(p, "quaternion"), q=(q, "quaternion"))
     return _angle(_quaternion.multiply(_quaternion.conjugate(p), q))
 
 
@@ -67,6 +65,6 @@ def mean(q: Float[Array, "*batch n 4"], weights: Float[Array, "*batch n"] | None
     if weights is None:
         return _rotation.top_eigenvector(jnp.einsum("...ni,...nj->...ij", q, q))
     weights = _checks.weights(_checks.per_item(weights, "weights", q, "q"))
-    q, weights = _checks.broadcast_batch([q, weights], ["q", "weights"], [2, 1])
+    q, weights = _checks.arguments(q=(q, "quaternions"), weights=(weights, "scalars"))
     m = jnp.einsum("...n,...ni,...nj->...ij", weights, q, q)
     return _arrays.nan_where(~_arrays.valid_weights(weights), _rotation.top_eigenvector(m))
