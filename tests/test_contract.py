@@ -641,3 +641,87 @@ def test_lists_of_booleans_are_rejected_and_integer_lists_accepted():
     with pytest.raises(TypeError, match="'q' must have a floating dtype"):
         jq.normalize([True, False, False, False])
     assert_close(jq.normalize([2, 0, 0, 0]), [1.0, 0.0, 0.0, 0.0], tol=0)
+
+
+# -- The annotations are true ------------------------------------------------------------------
+# Every public function's jaxtyping annotations (``Float[ArrayLike, "*#batch 4"]`` for arguments
+# whose batch axes broadcast, ``Float[Array, "*batch 4"]`` for results) are checked at run time
+# by jaxtyping with beartype: the parameters, the return, and the shape names shared across one
+# call. The public functions are wrapped as ``jaxtyping.jaxtyped(typechecker=beartype)`` would
+# decorate them, so the calls below fail if an annotation claims a shape, a batch relation or a
+# dtype the function does not keep.
+
+
+@functools.cache
+def _typechecked() -> dict:
+    """Every public function of jaxquat -> its checked wrapper (made once per test process)."""
+    import inspect
+
+    import beartype
+    import jaxtyping
+
+    functions = [getattr(jq, name) for name in jq.__all__ if inspect.isfunction(getattr(jq, name))]
+    return {f: jaxtyping.jaxtyped(typechecker=beartype.beartype)(f) for f in functions}
+
+
+@pytest.fixture
+def typechecked(monkeypatch):
+    """``jq.<name>`` for every public function replaced by its checked wrapper (the registry's
+    lambdas look their function up on ``jq`` when called); returns original -> wrapper."""
+    wrappers = _typechecked()
+    for f, checked in wrappers.items():
+        monkeypatch.setattr(jq, f.__name__, checked)
+    return wrappers
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_annotations_hold_for_nested_and_broadcast_batches(name, typechecked):
+    fn, args, _ = _make(name, SMOOTH_Q)
+    fn = typechecked.get(fn, fn)
+    args = [jnp.asarray(a, DTYPE) for a in args]
+    fn(*[a.reshape((3, 4) + a.shape[1:]) for a in args])  # a nested batch, all arguments alike
+    if len(args) > 1:
+        # batch shapes that broadcast, (3, 4) against (4,), the second as a NumPy array
+        fn(args[0].reshape((3, 4) + args[0].shape[1:]), *[np.asarray(a[:4]) for a in args[1:]])
+        # and the other way round: (4,) against (3, 4)
+        fn(args[0][:4], *[a.reshape((3, 4) + a.shape[1:]) for a in args[1:]])
+
+
+def _more_calls():
+    """Calls of the public functions outside the registry, in broadcast batch shapes
+    ((3, 1) against (4,) where a function takes two batched arguments)."""
+    rng = np.random.default_rng(7)
+    q = jnp.asarray(_unit(rng.normal(size=(3, 1, 4))), DTYPE)
+    w = jnp.asarray(rng.normal(size=(4, 3)), DTYPE)
+    moments = jnp.asarray([1.0, 2.0, 3.0], DTYPE)
+    inertia = jnp.asarray(random_inertias(3, 4), DTYPE)
+    m = jnp.asarray(rng.uniform(0.1, 0.9, (3, 1)), DTYPE)
+    u = jnp.asarray(rng.uniform(-2, 2, (4,)), DTYPE)
+    x = jnp.asarray(rng.uniform(0.5, 2, (3, 1)), DTYPE)
+    state = jq.mekf_init(q, w, jnp.eye(6, dtype=DTYPE) * 1e-2)
+    vb = jnp.asarray(rng.normal(size=(4, 2, 3)), DTYPE)
+    return {
+        "ellipj": lambda: jq.ellipj(u, m),
+        "ellipk": lambda: jq.ellipk(m),
+        "elliprf": lambda: jq.elliprf(x, u**2 + 0.5, x + 1),
+        "elliprj": lambda: jq.elliprj(x, u**2 + 0.5, x + 1, x + 2),
+        "euler_poinsot": lambda: jq.euler_poinsot(q, w, moments, u),
+        "polhode_period": lambda: jq.polhode_period(w, moments),
+        "invariants": lambda: jq.invariants(q, w, inertia),
+        "is_valid_inertia": lambda: jq.is_valid_inertia(inertia),
+        "principal_axes": lambda: jq.principal_axes(inertia),
+        "squad": lambda: jq.squad(q[:, 0], u * 0.2 + 1.0),
+        "identity": lambda: jq.identity((3, 4), DTYPE),
+        "random": lambda: jq.random(jax.random.PRNGKey(0), (3, 4), DTYPE),
+        "mekf_predict": lambda: jq.mekf_predict(state, w, 0.1, gyro_noise=1e-3, bias_noise=1e-4),
+        "mekf_update": lambda: jq.mekf_update(state, vb, vb, vector_noise=1e-2),
+        "mekf_update_quaternion": lambda: jq.mekf_update_quaternion(state, q, noise=1e-2),
+        "ukf_predict": lambda: jq.ukf_predict(state, w, 0.1, gyro_noise=1e-3, bias_noise=1e-4),
+        "ukf_update": lambda: jq.ukf_update(state, vb, vb, vector_noise=1e-2),
+        "ukf_update_quaternion": lambda: jq.ukf_update_quaternion(state, q, noise=1e-2),
+    }
+
+
+@pytest.mark.parametrize("name", sorted(_more_calls()))
+def test_annotations_hold_beyond_the_registry(name, typechecked):
+    _more_calls()[name]()

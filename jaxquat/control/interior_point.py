@@ -38,7 +38,8 @@ Everything is one ``lax.while_loop``, so a batch of problems solves in one compi
 
 from __future__ import annotations
 
-from typing import Any, Callable, NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp

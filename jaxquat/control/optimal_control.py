@@ -27,13 +27,14 @@ solver closes the defects.
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float
 
 from .. import _checks, _quaternion, _rates
 from ..integration.fixed_step import solve_fixed_steps
@@ -617,17 +618,17 @@ def _scales(inertia, q0, qf, w0, wf, duration_or_bound, min_time: bool):
 
 
 def optimal_reorientation(
-    inertia: Float[Array, "3 3"],
-    q0: Float[Array, "*batch 4"],
-    qf: Float[Array, "*batch 4"],
-    omega0: Float[Array, "*batch 3"] | None = None,
-    omegaf: Float[Array, "*batch 3"] | None = None,
+    inertia: Float[ArrayLike, "3 3"],
+    q0: Float[ArrayLike, "*#batch 4"],
+    qf: Float[ArrayLike, "*#batch 4"],
+    omega0: Float[ArrayLike, "*#batch 3"] | None = None,
+    omegaf: Float[ArrayLike, "*#batch 3"] | None = None,
     *,
     duration: float | None = None,
     time_weight: float = 0.0,
     energy_weight: float = 0.0,
     fuel_weight: float = 0.0,
-    torque_bound: Float[Array, "3"] | None = None,
+    torque_bound: Float[ArrayLike, "3"] | None = None,
     rate_bound: float | None = None,
     keep_out: Sequence = (),
     keep_in: Sequence = (),
@@ -749,14 +750,14 @@ def _shared(arguments: dict) -> dict:
 
 
 def minimum_energy_reorientation(
-    inertia: Float[Array, "3 3"],
-    q0: Float[Array, "*batch 4"],
-    qf: Float[Array, "*batch 4"],
+    inertia: Float[ArrayLike, "3 3"],
+    q0: Float[ArrayLike, "*#batch 4"],
+    qf: Float[ArrayLike, "*#batch 4"],
     duration: float,
-    omega0: Float[Array, "*batch 3"] | None = None,
-    omegaf: Float[Array, "*batch 3"] | None = None,
+    omega0: Float[ArrayLike, "*#batch 3"] | None = None,
+    omegaf: Float[ArrayLike, "*#batch 3"] | None = None,
     *,
-    torque_bound: Float[Array, "3"] | None = None,
+    torque_bound: Float[ArrayLike, "3"] | None = None,
     rate_bound: float | None = None,
     keep_out: Sequence = (),
     keep_in: Sequence = (),
@@ -806,14 +807,14 @@ def minimum_energy_reorientation(
 
 
 def minimum_fuel_reorientation(
-    inertia: Float[Array, "3 3"],
-    q0: Float[Array, "*batch 4"],
-    qf: Float[Array, "*batch 4"],
+    inertia: Float[ArrayLike, "3 3"],
+    q0: Float[ArrayLike, "*#batch 4"],
+    qf: Float[ArrayLike, "*#batch 4"],
     duration: float,
-    omega0: Float[Array, "*batch 3"] | None = None,
-    omegaf: Float[Array, "*batch 3"] | None = None,
+    omega0: Float[ArrayLike, "*#batch 3"] | None = None,
+    omegaf: Float[ArrayLike, "*#batch 3"] | None = None,
     *,
-    torque_bound: Float[Array, "3"],
+    torque_bound: Float[ArrayLike, "3"],
     rate_bound: float | None = None,
     keep_out: Sequence = (),
     keep_in: Sequence = (),
@@ -849,12 +850,12 @@ def minimum_fuel_reorientation(
 
 
 def constrained_minimum_time(
-    inertia: Float[Array, "3 3"],
-    torque_bound: Float[Array, "3"],
-    q0: Float[Array, "*batch 4"],
-    qf: Float[Array, "*batch 4"],
-    omega0: Float[Array, "*batch 3"] | None = None,
-    omegaf: Float[Array, "*batch 3"] | None = None,
+    inertia: Float[ArrayLike, "3 3"],
+    torque_bound: Float[ArrayLike, "3"],
+    q0: Float[ArrayLike, "*#batch 4"],
+    qf: Float[ArrayLike, "*#batch 4"],
+    omega0: Float[ArrayLike, "*#batch 3"] | None = None,
+    omegaf: Float[ArrayLike, "*#batch 3"] | None = None,
     *,
     rate_bound: float | None = None,
     keep_out: Sequence = (),

@@ -49,7 +49,8 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -57,7 +58,7 @@ import numpy as np
 import optax
 from jax import Array
 from jax.flatten_util import ravel_pytree
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float
 
 from .. import _checks, _trig
 from ..mechanics.inertia import validated
@@ -294,12 +295,12 @@ def _solve(x, lam, mu, pr: _Problem, substeps: int, inner: int):
 
 
 def minimum_time_reorientation(
-    inertia: Float[Array, "3 3"],
-    torque_bound: Float[Array, "3"],
-    q0: Float[Array, "4"],
-    qf: Float[Array, "4"],
-    omega0: Float[Array, "3"] | None = None,
-    omegaf: Float[Array, "3"] | None = None,
+    inertia: Float[ArrayLike, "3 3"],
+    torque_bound: Float[ArrayLike, "3"],
+    q0: Float[ArrayLike, "4"],
+    qf: Float[ArrayLike, "4"],
+    omega0: Float[ArrayLike, "3"] | None = None,
+    omegaf: Float[ArrayLike, "3"] | None = None,
     *,
     intervals: int = 30,
     substeps: int = 4,
@@ -467,7 +468,7 @@ def minimum_time_reorientation(
     check_resolution(t_ref, q0, qf, w0, wf, intervals, substeps)
     p = _initial_controls(jax.random.PRNGKey(seed), starts, intervals, bound, axis, init)
 
-    problem = _Problem(inertia, bound, q0, w0, qf, wf, jnp.asarray(t_ref, dtype))
+    problem = _Problem(inertia, bound, jnp.asarray(q0), w0, jnp.asarray(qf), wf, jnp.asarray(t_ref, dtype))
 
     x = {"sigma": jnp.zeros(starts, dtype), "p": jnp.asarray(p, dtype)}  # every start at T = T_ref
     lam = jnp.zeros((starts, 6), dtype)

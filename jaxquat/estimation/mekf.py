@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float
 
 from .. import _arrays, _checks, _quaternion, _rotation
 
@@ -271,7 +271,7 @@ def _state(state: FilterState) -> tuple[Array, Array, Array]:
 
 
 def mekf_init(
-    q0: Float[Array, "*batch 4"], bias0: Float[Array, "*batch 3"], P0: Float[Array, "*batch 6 6"]
+    q0: Float[ArrayLike, "*#batch 4"], bias0: Float[ArrayLike, "*#batch 3"], P0: Float[ArrayLike, "*#batch 6 6"]
 ) -> FilterState:
     """The filter state at ``t_0``: ``q0`` (normalised here), ``bias0`` (rad/s) and the covariance
     ``P0`` of ``(dtheta, dbias)`` (rad^2, rad^2/s^2; the attitude block is body-frame)."""
@@ -281,7 +281,12 @@ def mekf_init(
 
 
 def mekf_predict(
-    state: FilterState, gyro: Float[Array, "*batch 3"], dt: Float[Array, "*batch"] | float, *, gyro_noise, bias_noise
+    state: FilterState,
+    gyro: Float[ArrayLike, "*#batch 3"],
+    dt: Float[ArrayLike, "*#batch"] | float,
+    *,
+    gyro_noise,
+    bias_noise,
 ) -> FilterState:
     """Propagate the estimate over ``dt`` with the gyro sample ``gyro`` (rad/s, body frame) held.
 
@@ -343,10 +348,10 @@ def _sigma(noise: object, name: str, m: int) -> Array:
 
 def mekf_update(
     state: FilterState,
-    vectors_body: Float[Array, "*batch m 3"],
-    vectors_ref: Float[Array, "*batch m 3"],
+    vectors_body: Float[ArrayLike, "*#batch m 3"],
+    vectors_ref: Float[ArrayLike, "*#batch m 3"],
     *,
-    vector_noise: Float[Array, "*batch m"] | float,
+    vector_noise: Float[ArrayLike, "*#batch m"] | float,
 ) -> tuple[FilterState, FilterUpdate]:
     """Update with ``m`` vector measurements at one time: ``b_i = R(q)^T r_i + v_i``.
 
@@ -366,7 +371,7 @@ def mekf_update(
 
 
 def mekf_update_quaternion(
-    state: FilterState, q_meas: Float[Array, "*batch 4"], *, noise: Float[Array, "*batch"] | float
+    state: FilterState, q_meas: Float[ArrayLike, "*#batch 4"], *, noise: Float[ArrayLike, "*#batch"] | float
 ) -> tuple[FilterState, FilterUpdate]:
     """Update with a measured attitude ``q_meas = q_true Exp(v)``, ``v ~ N(0, noise^2 I)`` (rad).
 
@@ -379,17 +384,17 @@ def mekf_update_quaternion(
 
 
 def mekf(
-    q0: Float[Array, "*batch 4"],
-    bias0: Float[Array, "*batch 3"],
-    P0: Float[Array, "*batch 6 6"],
-    dt: Float[Array, "*batch"] | float,
-    gyro: Float[Array, "*batch n 3"],
-    vectors_body: Float[Array, "*batch n m 3"],
-    vectors_ref: Float[Array, "*batch n m 3"],
+    q0: Float[ArrayLike, "*#batch 4"],
+    bias0: Float[ArrayLike, "*#batch 3"],
+    P0: Float[ArrayLike, "*#batch 6 6"],
+    dt: Float[ArrayLike, "*#batch"] | float,
+    gyro: Float[ArrayLike, "*#batch n 3"],
+    vectors_body: Float[ArrayLike, "*#batch n m 3"],
+    vectors_ref: Float[ArrayLike, "*#batch n m 3"],
     *,
-    vector_noise: Float[Array, "*batch m"] | float,
-    gyro_noise: Float[Array, "*batch"] | float,
-    bias_noise: Float[Array, "*batch"] | float,
+    vector_noise: Float[ArrayLike, "*#batch m"] | float,
+    gyro_noise: Float[ArrayLike, "*#batch"] | float,
+    bias_noise: Float[ArrayLike, "*#batch"] | float,
 ) -> FilterResult:
     """Run the MEKF over a whole record in one ``lax.scan`` (Crassidis & Junkins, Table 7.1).
 

@@ -26,8 +26,7 @@ import functools
 
 import jax.numpy as jnp
 import numpy as np
-from jax import Array
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float
 
 from .. import _checks, _quaternion, _rotation
 from .mekf import (
@@ -128,8 +127,8 @@ def _kappa(kappa: float) -> float:
 
 def ukf_predict(
     state: FilterState,
-    gyro: Float[Array, "*batch 3"],
-    dt: Float[Array, "*batch"] | float,
+    gyro: Float[ArrayLike, "*#batch 3"],
+    dt: Float[ArrayLike, "*#batch"] | float,
     *,
     gyro_noise,
     bias_noise,
@@ -145,10 +144,10 @@ def ukf_predict(
 
 def ukf_update(
     state: FilterState,
-    vectors_body: Float[Array, "*batch m 3"],
-    vectors_ref: Float[Array, "*batch m 3"],
+    vectors_body: Float[ArrayLike, "*#batch m 3"],
+    vectors_ref: Float[ArrayLike, "*#batch m 3"],
     *,
-    vector_noise: Float[Array, "*batch m"] | float,
+    vector_noise: Float[ArrayLike, "*#batch m"] | float,
     kappa: float = 1.0,
 ) -> tuple[FilterState, FilterUpdate]:
     """Update with ``m`` vector measurements ``b_i = R(q)^T r_i + v_i`` through the sigma points'
@@ -159,7 +158,11 @@ def ukf_update(
 
 
 def ukf_update_quaternion(
-    state: FilterState, q_meas: Float[Array, "*batch 4"], *, noise: Float[Array, "*batch"] | float, kappa: float = 1.0
+    state: FilterState,
+    q_meas: Float[ArrayLike, "*#batch 4"],
+    *,
+    noise: Float[ArrayLike, "*#batch"] | float,
+    kappa: float = 1.0,
 ) -> tuple[FilterState, FilterUpdate]:
     """Update with a measured attitude ``q_meas = q_true Exp(v)``, ``v ~ N(0, noise^2 I)`` (rad),
     through the sigma points: read in the tangent space at the estimate the measurement is linear
@@ -170,17 +173,17 @@ def ukf_update_quaternion(
 
 
 def ukf(
-    q0: Float[Array, "*batch 4"],
-    bias0: Float[Array, "*batch 3"],
-    P0: Float[Array, "*batch 6 6"],
-    dt: Float[Array, "*batch"] | float,
-    gyro: Float[Array, "*batch n 3"],
-    vectors_body: Float[Array, "*batch n m 3"],
-    vectors_ref: Float[Array, "*batch n m 3"],
+    q0: Float[ArrayLike, "*#batch 4"],
+    bias0: Float[ArrayLike, "*#batch 3"],
+    P0: Float[ArrayLike, "*#batch 6 6"],
+    dt: Float[ArrayLike, "*#batch"] | float,
+    gyro: Float[ArrayLike, "*#batch n 3"],
+    vectors_body: Float[ArrayLike, "*#batch n m 3"],
+    vectors_ref: Float[ArrayLike, "*#batch n m 3"],
     *,
-    vector_noise: Float[Array, "*batch m"] | float,
-    gyro_noise: Float[Array, "*batch"] | float,
-    bias_noise: Float[Array, "*batch"] | float,
+    vector_noise: Float[ArrayLike, "*#batch m"] | float,
+    gyro_noise: Float[ArrayLike, "*#batch"] | float,
+    bias_noise: Float[ArrayLike, "*#batch"] | float,
     kappa: float = 1.0,
 ) -> FilterResult:
     """The unscented filter over a whole record in one ``lax.scan``: the same arguments, sample

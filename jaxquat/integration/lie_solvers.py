@@ -42,7 +42,8 @@ the others slerp on the quaternion leaves, linear on the rest (:class:`SlerpInte
 from __future__ import annotations
 
 import abc
-from typing import Any, Callable, ClassVar
+from collections.abc import Callable
+from typing import Any, ClassVar
 
 import diffrax
 import equinox as eqx

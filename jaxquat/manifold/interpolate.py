@@ -8,7 +8,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 from jax import Array
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float
 
 from .. import _checks, _quaternion, _rotation
 
@@ -16,7 +16,7 @@ __all__ = ["slerp", "squad", "squad_control_points", "squad_segment"]
 
 
 def slerp(
-    p: Float[Array, "*batch 4"], q: Float[Array, "*batch 4"], t: Float[Array, "*batch"] | float
+    p: Float[ArrayLike, "*#batch 4"], q: Float[ArrayLike, "*#batch 4"], t: Float[ArrayLike, "*#batch"] | float
 ) -> Float[Array, "*batch 4"]:
     """Spherical linear interpolation along the shortest arc: ``p (p* q')^t``, [T] eqs. (59)-(61).
 
@@ -41,7 +41,7 @@ def _control_points(keys: Array) -> Array:
     return jnp.concatenate([keys[..., :1, :], inner, keys[..., -1:, :]], axis=-2)
 
 
-def squad_control_points(keys: Float[Array, "*batch n 4"]) -> Float[Array, "*batch n 4"]:
+def squad_control_points(keys: Float[ArrayLike, "*batch n 4"]) -> Float[Array, "*batch n 4"]:
     """Shoemake's intermediate points ``s_i = q_i exp(-(log(q_i* q_(i+1)) + log(q_i* q_(i-1))) / 4)``.
 
     ``s_0 = q_0`` and ``s_(n-1) = q_(n-1)``. Keys are first sign-aligned (each
@@ -64,11 +64,11 @@ def _aligned_keys_and_controls(keys: Array) -> tuple[Array, Array]:
 
 
 def squad_segment(
-    q0: Float[Array, "*batch 4"],
-    q1: Float[Array, "*batch 4"],
-    s0: Float[Array, "*batch 4"],
-    s1: Float[Array, "*batch 4"],
-    h: Float[Array, "*batch"] | float,
+    q0: Float[ArrayLike, "*#batch 4"],
+    q1: Float[ArrayLike, "*#batch 4"],
+    s0: Float[ArrayLike, "*#batch 4"],
+    s1: Float[ArrayLike, "*#batch 4"],
+    h: Float[ArrayLike, "*#batch"] | float,
 ) -> Float[Array, "*batch 4"]:
     """One squad segment: ``slerp(slerp(q0, q1, h), slerp(s0, s1, h), 2 h (1 - h))`` for ``h`` in [0, 1]."""
     arrays = [_checks.quat(q0, "q0"), _checks.quat(q1, "q1"), _checks.quat(s0, "s0"), _checks.quat(s1, "s1")]
@@ -82,7 +82,7 @@ def _squad_segment(q0: Array, q1: Array, s0: Array, s1: Array, h: Array) -> Arra
     return _rotation.slerp(_rotation.slerp(q0, q1, h), _rotation.slerp(s0, s1, h), 2 * h * (1 - h))
 
 
-def squad(keys: Float[Array, "n 4"], u: Float[Array, "*shape"] | float) -> Float[Array, "*shape 4"]:
+def squad(keys: Float[ArrayLike, "n 4"], u: Float[ArrayLike, "*shape"] | float) -> Float[Array, "*shape 4"]:
     """Shoemake's spherical cubic (squad) through ``keys`` at parameter ``u`` in ``[0, n-1]``.
 
     Key ``i`` is reached at ``u = i`` (uniform parameterisation); between keys

@@ -17,7 +17,7 @@ body angular velocity of ``Exp(phi(t))`` is ``J_r(phi) phi'`` and the space one
 from __future__ import annotations
 
 from jax import Array
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float
 
 from .. import _checks, _quaternion, _rotation, _safe
 
@@ -32,7 +32,9 @@ __all__ = [
 ]
 
 
-def plus(q: Float[Array, "*batch 4"], delta: Float[Array, "*batch 3"], frame: str = "body") -> Float[Array, "*batch 4"]:
+def plus(
+    q: Float[ArrayLike, "*#batch 4"], delta: Float[ArrayLike, "*#batch 3"], frame: str = "body"
+) -> Float[Array, "*batch 4"]:
     """Retraction: ``q Exp(delta)`` (``frame="body"``) or ``Exp(delta) q`` (``"space"``).
 
     ``Exp(delta) = (cos(|delta|/2), sin(|delta|/2) delta/|delta|)`` is the quaternion
@@ -45,7 +47,9 @@ def plus(q: Float[Array, "*batch 4"], delta: Float[Array, "*batch 3"], frame: st
     return _quaternion.multiply(q, e) if frame == "body" else _quaternion.multiply(e, q)
 
 
-def minus(q1: Float[Array, "*batch 4"], q0: Float[Array, "*batch 4"], frame: str = "body") -> Float[Array, "*batch 3"]:
+def minus(
+    q1: Float[ArrayLike, "*#batch 4"], q0: Float[ArrayLike, "*#batch 4"], frame: str = "body"
+) -> Float[Array, "*batch 3"]:
     """Inverse retraction: ``Log(q0* q1)`` (body) or ``Log(q1 q0*)`` (space), ``|result| <= pi``.
 
     The rotation vector that :func:`plus` applies to ``q0`` to reach ``q1``
@@ -64,7 +68,7 @@ def minus(q1: Float[Array, "*batch 4"], q0: Float[Array, "*batch 4"], frame: str
     return _rotation.to_rotvec(rel)
 
 
-def right_jacobian(phi: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+def right_jacobian(phi: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     """Right Jacobian of the SO(3) exponential, ``J_r(phi)``.
 
     ``J_r = I - (1 - cos t)/t^2 hat(phi) + (t - sin t)/t^3 hat(phi)^2`` with
@@ -75,7 +79,7 @@ def right_jacobian(phi: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     return _rotation.right_jacobian(_checks.vec3(phi, "phi"))
 
 
-def right_jacobian_inverse(phi: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+def right_jacobian_inverse(phi: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     """``J_r(phi)^-1 = I + hat(phi)/2 + (1/t^2 - cot(t/2)/(2 t)) hat(phi)^2``, ``t = |phi|``.
 
     Written with ``cot(t/2)`` so it is finite at ``t = pi``; singular only at
@@ -85,7 +89,7 @@ def right_jacobian_inverse(phi: Float[Array, "*batch 3"]) -> Float[Array, "*batc
     return _rotation.right_jacobian_inverse(_checks.vec3(phi, "phi"))
 
 
-def left_jacobian(phi: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+def left_jacobian(phi: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     """Left Jacobian ``J_l(phi) = J_r(-phi) = I + (1 - cos t)/t^2 hat(phi) + (t - sin t)/t^3 hat(phi)^2``.
 
     Maps exponential-coordinate rates to space angular velocity: ``w_s = J_l(phi) phi'``.
@@ -93,12 +97,12 @@ def left_jacobian(phi: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     return _rotation.right_jacobian(-_checks.vec3(phi, "phi"))
 
 
-def left_jacobian_inverse(phi: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+def left_jacobian_inverse(phi: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     """``J_l(phi)^-1 = J_r(-phi)^-1 = I - hat(phi)/2 + (1/t^2 - cot(t/2)/(2 t)) hat(phi)^2``."""
     return _rotation.right_jacobian_inverse(-_checks.vec3(phi, "phi"))
 
 
-def adjoint(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
+def adjoint(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
     """Adjoint of SO(3) at ``q``: ``q Exp(d) q* = Exp(Ad_q d)`` with ``Ad_q = to_matrix(q)``.
 
     Moves a body-frame tangent vector to the space frame:

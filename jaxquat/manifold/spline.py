@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float
 
 from .. import _arrays, _checks, _quaternion, _rotation
 
@@ -141,7 +141,7 @@ class RotationSpline:
         work = _checks.working_dtype(times.dtype)
         self.keys, self.coeffs = _fit(times.astype(work), quats.astype(work), max_iter, tol)
 
-    def __call__(self, t: Float[Array, "*shape"] | float, order: int = 0) -> Array:
+    def __call__(self, t: Float[ArrayLike, "*shape"] | float, order: int = 0) -> Array:
         """Attitude (``order=0``, ``(..., 4)``), body angular velocity (1) or acceleration (2) at ``t``.
 
         Args:

@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import optax
 from jax import Array
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float
 
 from .. import _checks, _rates
 from .lie import plus
@@ -38,7 +38,7 @@ __all__ = ["tangent_gradient", "tangent_gradients", "tangent_optimizer", "apply_
 
 
 def tangent_gradient(
-    q: Float[Array, "*batch 4"], grad: Float[Array, "*batch 4"], frame: str = "body"
+    q: Float[ArrayLike, "*#batch 4"], grad: Float[ArrayLike, "*#batch 4"], frame: str = "body"
 ) -> Float[Array, "*batch 3"]:
     """The gradient of a loss with respect to a rotation of ``q``, from its Euclidean gradient.
 

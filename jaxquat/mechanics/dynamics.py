@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 from jax import Array
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float
 
 from .. import _arrays, _checks, _quaternion, _rates
 from .inertia import validated
@@ -50,9 +50,9 @@ def _euler_torque_body(inertia: Array, w: Array, alpha: Array) -> Array:
 
 
 def angular_momentum(
-    q: Float[Array, "*batch 4"],
-    omega: Float[Array, "*batch 3"],
-    inertia: Float[Array, "*batch 3 3"],
+    q: Float[ArrayLike, "*#batch 4"],
+    omega: Float[ArrayLike, "*#batch 3"],
+    inertia: Float[ArrayLike, "*#batch 3 3"],
     frame: str = "body",
 ) -> Float[Array, "*batch 3"]:
     """Angular momentum about the centre of mass, resolved in ``frame``.
@@ -70,9 +70,9 @@ def angular_momentum(
 
 
 def kinetic_energy(
-    q: Float[Array, "*batch 4"],
-    omega: Float[Array, "*batch 3"],
-    inertia: Float[Array, "*batch 3 3"],
+    q: Float[ArrayLike, "*#batch 4"],
+    omega: Float[ArrayLike, "*#batch 3"],
+    inertia: Float[ArrayLike, "*#batch 3 3"],
     frame: str = "body",
 ) -> Float[Array, "*batch"]:
     """Rotational kinetic energy ``T = 1/2 w_b . I w_b = 1/2 w_s . I0 w_s``.
@@ -89,10 +89,10 @@ def kinetic_energy(
 
 
 def angular_acceleration(
-    q: Float[Array, "*batch 4"],
-    omega: Float[Array, "*batch 3"],
-    inertia: Float[Array, "*batch 3 3"],
-    torque: Float[Array, "*batch 3"] | None = None,
+    q: Float[ArrayLike, "*#batch 4"],
+    omega: Float[ArrayLike, "*#batch 3"],
+    inertia: Float[ArrayLike, "*#batch 3 3"],
+    torque: Float[ArrayLike, "*#batch 3"] | None = None,
     frame: str = "body",
 ) -> Float[Array, "*batch 3"]:
     """Euler's equations solved for the angular acceleration.
@@ -113,10 +113,10 @@ def angular_acceleration(
 
 
 def inverse_dynamics(
-    q: Float[Array, "*batch 4"],
-    omega: Float[Array, "*batch 3"],
-    alpha: Float[Array, "*batch 3"],
-    inertia: Float[Array, "*batch 3 3"],
+    q: Float[ArrayLike, "*#batch 4"],
+    omega: Float[ArrayLike, "*#batch 3"],
+    alpha: Float[ArrayLike, "*#batch 3"],
+    inertia: Float[ArrayLike, "*#batch 3 3"],
     frame: str = "body",
 ) -> Float[Array, "*batch 3"]:
     """Torque that produces a given motion: ``M = I a + w x I w`` in the body frame ([S] eq. (19),
@@ -131,10 +131,10 @@ def inverse_dynamics(
 
 
 def euler_parameter_acceleration(
-    q: Float[Array, "*batch 4"],
-    qdot: Float[Array, "*batch 4"],
-    inertia: Float[Array, "*batch 3 3"],
-    torque: Float[Array, "*batch 3"] | None = None,
+    q: Float[ArrayLike, "*#batch 4"],
+    qdot: Float[ArrayLike, "*#batch 4"],
+    inertia: Float[ArrayLike, "*#batch 3 3"],
+    torque: Float[ArrayLike, "*#batch 3"] | None = None,
     frame: str = "body",
 ) -> Float[Array, "*batch 4"]:
     """``qddot`` from the Euler-parameter equations of motion (Chou's closed form).
@@ -168,10 +168,10 @@ def euler_parameter_acceleration(
 
 
 def euler_parameter_torque(
-    q: Float[Array, "*batch 4"],
-    qdot: Float[Array, "*batch 4"],
-    qddot: Float[Array, "*batch 4"],
-    inertia: Float[Array, "*batch 3 3"],
+    q: Float[ArrayLike, "*#batch 4"],
+    qdot: Float[ArrayLike, "*#batch 4"],
+    qddot: Float[ArrayLike, "*#batch 4"],
+    inertia: Float[ArrayLike, "*#batch 3 3"],
     frame: str = "body",
 ) -> Float[Array, "*batch 3"]:
     """Torque from Euler parameters and their derivatives (Euler's equations in Euler parameters).
@@ -203,7 +203,7 @@ def _quat_inertia_product(q: Array, inertia: Array) -> Array:
 
 
 def euler_parameter_mass_matrix(
-    q: Float[Array, "*batch 4"], inertia: Float[Array, "*batch 3 3"]
+    q: Float[ArrayLike, "*#batch 4"], inertia: Float[ArrayLike, "*#batch 3 3"]
 ) -> Float[Array, "*batch 4 4"]:
     """Schwab's 4x4 mass matrix ``4 Q diag(0, I) Q^T`` ([S] eq. (23), upper-left block).
 
@@ -216,7 +216,7 @@ def euler_parameter_mass_matrix(
 
 
 def generalized_force(
-    q: Float[Array, "*batch 4"], torque: Float[Array, "*batch 3"], frame: str = "body"
+    q: Float[ArrayLike, "*#batch 4"], torque: Float[ArrayLike, "*#batch 3"], frame: str = "body"
 ) -> Float[Array, "*batch 4"]:
     """Torque -> generalised force dual to the Euler parameters, [S] eq. (25).
 
@@ -231,7 +231,7 @@ def generalized_force(
 
 
 def torque_from_generalized_force(
-    q: Float[Array, "*batch 4"], force: Float[Array, "*batch 4"], frame: str = "body"
+    q: Float[ArrayLike, "*#batch 4"], force: Float[ArrayLike, "*#batch 4"], frame: str = "body"
 ) -> Float[Array, "*batch 3"]:
     """Generalised Euler-parameter force -> torque: ``M_b = 1/2 vec(q* f)``, ``M_s = 1/2 vec(f q*)``.
 
@@ -245,10 +245,10 @@ def torque_from_generalized_force(
 
 
 def euler_parameter_augmented_system(
-    q: Float[Array, "*batch 4"],
-    qdot: Float[Array, "*batch 4"],
-    inertia: Float[Array, "*batch 3 3"],
-    torque: Float[Array, "*batch 3"] | None = None,
+    q: Float[ArrayLike, "*#batch 4"],
+    qdot: Float[ArrayLike, "*#batch 4"],
+    inertia: Float[ArrayLike, "*#batch 3 3"],
+    torque: Float[ArrayLike, "*#batch 3"] | None = None,
     frame: str = "body",
 ) -> tuple[Float[Array, "*batch 5 5"], Float[Array, "*batch 5"]]:
     """Schwab's augmented Euler-parameter equations of motion, [S] eq. (23): ``(lhs, rhs)``.
@@ -286,7 +286,7 @@ def euler_parameter_augmented_system(
 
 
 def norm_constraint_multiplier(
-    q: Float[Array, "*batch 4"], qdot: Float[Array, "*batch 4"], inertia: Float[Array, "*batch 3 3"]
+    q: Float[ArrayLike, "*#batch 4"], qdot: Float[ArrayLike, "*#batch 4"], inertia: Float[ArrayLike, "*#batch 3 3"]
 ) -> Float[Array, "*batch"]:
     """Schwab's Lagrange multiplier of the norm constraint, [S] eq. (24).
 

@@ -30,7 +30,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 from jax import Array, lax
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float
 
 from .. import _checks, _trig
 
@@ -145,7 +145,7 @@ def _broadcast(args, names):
     return [a.astype(work) for a in arrays], dtype
 
 
-def ellipj(u: Float[Array, "*batch"], m: Float[Array, "*batch"]) -> tuple[Array, Array, Array, Array]:
+def ellipj(u: Float[ArrayLike, "*#batch"], m: Float[ArrayLike, "*#batch"]) -> tuple[Array, Array, Array, Array]:
     """Jacobi elliptic functions ``sn, cn, dn`` and the amplitude ``am`` of ``u`` with parameter ``m``.
 
     ``am(u | m) = phi`` inverts ``u = int_0^phi dt / sqrt(1 - m sin^2 t)``;
@@ -171,7 +171,7 @@ def _ellipk(m: Array) -> Array:
     return jnp.where(m > 1, jnp.nan, quarter_period(m, 1 - m))
 
 
-def ellipk(m: Float[Array, "*batch"]) -> Array:
+def ellipk(m: Float[ArrayLike, "*batch"]) -> Array:
     """Complete elliptic integral of the first kind ``K(m) = int_0^(pi/2) dt / sqrt(1 - m sin^2 t)``.
 
     Computed as ``pi / (2 AGM(1, sqrt(1 - m)))`` for ``m < 1`` (negative ``m`` included);
@@ -240,7 +240,7 @@ def _rj(x: Array, y: Array, z: Array, p: Array) -> Array:
     return 6 * total + scale * series / (a * jnp.sqrt(a))
 
 
-def elliprf(x: Float[Array, "*batch"], y: Float[Array, "*batch"], z: Float[Array, "*batch"]) -> Array:
+def elliprf(x: Float[ArrayLike, "*#batch"], y: Float[ArrayLike, "*#batch"], z: Float[ArrayLike, "*#batch"]) -> Array:
     """Carlson's ``R_F(x, y, z) = 1/2 int_0^inf dt / sqrt((t + x)(t + y)(t + z))``.
 
     ``x, y, z >= 0`` with at most one zero. ``F(phi | m) = sin(phi) R_F(cos^2 phi,
@@ -251,7 +251,10 @@ def elliprf(x: Float[Array, "*batch"], y: Float[Array, "*batch"], z: Float[Array
 
 
 def elliprj(
-    x: Float[Array, "*batch"], y: Float[Array, "*batch"], z: Float[Array, "*batch"], p: Float[Array, "*batch"]
+    x: Float[ArrayLike, "*#batch"],
+    y: Float[ArrayLike, "*#batch"],
+    z: Float[ArrayLike, "*#batch"],
+    p: Float[ArrayLike, "*#batch"],
 ) -> Array:
     """Carlson's ``R_J(x, y, z, p) = 3/2 int_0^inf dt / ((t + p) sqrt((t + x)(t + y)(t + z)))``.
 

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
-from jaxtyping import Bool, Float
+from jaxtyping import ArrayLike, Bool, Float
 
 from .. import _arrays, _checks, _rotation
 
@@ -38,7 +38,7 @@ __all__ = [
 
 
 def inertia_from_points(
-    positions: Float[Array, "*batch n 3"], masses: Float[Array, "*batch n"]
+    positions: Float[ArrayLike, "*#batch n 3"], masses: Float[ArrayLike, "*#batch n"]
 ) -> Float[Array, "*batch 3 3"]:
     """Inertia tensor of point masses about the origin: ``sum_k m_k (|r_k|^2 U - r_k r_k^T)``.
 
@@ -57,7 +57,9 @@ def inertia_from_points(
     return jnp.sum(m[..., None, None] * per_point, axis=-3)
 
 
-def rotate_inertia(q: Float[Array, "*batch 4"], inertia: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3 3"]:
+def rotate_inertia(
+    q: Float[ArrayLike, "*#batch 4"], inertia: Float[ArrayLike, "*#batch 3 3"]
+) -> Float[Array, "*batch 3 3"]:
     """Body-to-space transform of an inertia tensor: ``I0 = A I A^T`` with ``A = to_matrix(q)``, [C] eq. (C1).
 
     ``rotate_inertia(conjugate(q), I0)`` goes back. Assumes ``|q| = 1``.
@@ -68,7 +70,7 @@ def rotate_inertia(q: Float[Array, "*batch 4"], inertia: Float[Array, "*batch 3 
 
 
 def inertia_rate(
-    inertia_space: Float[Array, "*batch 3 3"], omega_space: Float[Array, "*batch 3"]
+    inertia_space: Float[ArrayLike, "*#batch 3 3"], omega_space: Float[ArrayLike, "*#batch 3"]
 ) -> Float[Array, "*batch 3 3"]:
     """Time derivative of the space-frame inertia of a rigid body: ``dI0/dt = hat(w) I0 - I0 hat(w)``, [C] eq. (C4)."""
     i0, w = _checks.arguments(inertia_space=(inertia_space, "inertia"), omega_space=(omega_space, "vector"))
@@ -76,7 +78,7 @@ def inertia_rate(
     return wh @ i0 - i0 @ wh
 
 
-def quaternion_inertia(inertia: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 4 4"]:
+def quaternion_inertia(inertia: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 4 4"]:
     """Chou's inertia in four-space, ``[[k, 0], [0, I]]`` with ``k = tr(I)/2``, [C] eqs. (B4)-(B5).
 
     ``k = integral |r|^2 dm`` ([C] eq. (B3)) is the (0,0) entry of
@@ -102,7 +104,7 @@ def _moments(inertia: Array) -> Array:
     return jnp.linalg.eigvalsh(0.5 * (work + jnp.swapaxes(work, -1, -2)))
 
 
-def is_valid_inertia(inertia: Float[Array, "*batch 3 3"], rtol: float | None = None) -> Bool[Array, "*batch"]:
+def is_valid_inertia(inertia: Float[ArrayLike, "*batch 3 3"], rtol: float | None = None) -> Bool[Array, "*batch"]:
     """Whether each tensor is a physical inertia: finite, symmetric, positive definite, triangle inequality.
 
     With ``s`` the largest absolute entry and ``I1 <= I2 <= I3`` the principal
@@ -183,7 +185,9 @@ def validated(inertia: Any, name: str = "inertia") -> Array:
     return arr
 
 
-def principal_axes(inertia: Float[Array, "*batch 3 3"]) -> tuple[Float[Array, "*batch 3"], Float[Array, "*batch 4"]]:
+def principal_axes(
+    inertia: Float[ArrayLike, "*batch 3 3"],
+) -> tuple[Float[Array, "*batch 3"], Float[Array, "*batch 4"]]:
     """Principal moments (ascending) and the rotation from principal to body axes.
 
     Returns ``(moments, q_axes)`` with ``inertia = R diag(moments) R^T`` and

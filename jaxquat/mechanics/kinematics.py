@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 from jax import Array
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float
 
 from .. import _arrays, _checks, _quaternion, _rates, _rotation
 
@@ -42,7 +42,7 @@ __all__ = [
 ]
 
 
-def rate_matrix(q: Float[Array, "*batch 4"], frame: str = "body") -> Float[Array, "*batch 3 4"]:
+def rate_matrix(q: Float[ArrayLike, "*batch 4"], frame: str = "body") -> Float[Array, "*batch 3 4"]:
     """The 3x4 matrix ``E`` with ``w = 2 E qdot`` and ``qdot = 1/2 E^T w`` (unit ``q``).
 
     ``frame="body"``: ``E = [-v, q0 I - v~]`` (Chou's E-minus [C] eq. (25),
@@ -66,7 +66,7 @@ def rate_matrix(q: Float[Array, "*batch 4"], frame: str = "body") -> Float[Array
 
 
 def qdot_from_omega(
-    q: Float[Array, "*batch 4"], omega: Float[Array, "*batch 3"], frame: str = "body"
+    q: Float[ArrayLike, "*#batch 4"], omega: Float[ArrayLike, "*#batch 3"], frame: str = "body"
 ) -> Float[Array, "*batch 4"]:
     """Quaternion rate from angular velocity.
 
@@ -83,7 +83,7 @@ def qdot_from_omega(
 
 
 def omega_from_qdot(
-    q: Float[Array, "*batch 4"], qdot: Float[Array, "*batch 4"], frame: str = "body"
+    q: Float[ArrayLike, "*#batch 4"], qdot: Float[ArrayLike, "*#batch 4"], frame: str = "body"
 ) -> Float[Array, "*batch 3"]:
     """Angular velocity from the quaternion rate.
 
@@ -102,9 +102,9 @@ def omega_from_qdot(
 
 
 def qddot_from_alpha(
-    q: Float[Array, "*batch 4"],
-    qdot: Float[Array, "*batch 4"],
-    alpha: Float[Array, "*batch 3"],
+    q: Float[ArrayLike, "*#batch 4"],
+    qdot: Float[ArrayLike, "*#batch 4"],
+    alpha: Float[ArrayLike, "*#batch 3"],
     frame: str = "body",
 ) -> Float[Array, "*batch 4"]:
     """Quaternion second derivative from angular acceleration.
@@ -127,9 +127,9 @@ def qddot_from_alpha(
 
 
 def alpha_from_qddot(
-    q: Float[Array, "*batch 4"],
-    qdot: Float[Array, "*batch 4"],
-    qddot: Float[Array, "*batch 4"],
+    q: Float[ArrayLike, "*#batch 4"],
+    qdot: Float[ArrayLike, "*#batch 4"],
+    qddot: Float[ArrayLike, "*#batch 4"],
     frame: str = "body",
 ) -> Float[Array, "*batch 3"]:
     """Angular acceleration from the quaternion's first and second derivatives.
@@ -150,7 +150,7 @@ def alpha_from_qddot(
 
 
 def matrix_rate(
-    q: Float[Array, "*batch 4"], omega: Float[Array, "*batch 3"], frame: str = "body"
+    q: Float[ArrayLike, "*#batch 4"], omega: Float[ArrayLike, "*#batch 3"], frame: str = "body"
 ) -> Float[Array, "*batch 3 3"]:
     """Time derivative of the rotation matrix (Poisson's equation).
 
@@ -165,9 +165,9 @@ def matrix_rate(
 
 
 def matrix_acceleration(
-    q: Float[Array, "*batch 4"],
-    omega: Float[Array, "*batch 3"],
-    alpha: Float[Array, "*batch 3"],
+    q: Float[ArrayLike, "*#batch 4"],
+    omega: Float[ArrayLike, "*#batch 3"],
+    alpha: Float[ArrayLike, "*#batch 3"],
     frame: str = "body",
 ) -> Float[Array, "*batch 3 3"]:
     """Second time derivative of the rotation matrix.
@@ -185,10 +185,10 @@ def matrix_acceleration(
 
 
 def point_velocity(
-    q: Float[Array, "*batch 4"],
-    omega: Float[Array, "*batch 3"],
-    r: Float[Array, "*batch 3"],
-    r_dot: Float[Array, "*batch 3"] | None = None,
+    q: Float[ArrayLike, "*#batch 4"],
+    omega: Float[ArrayLike, "*#batch 3"],
+    r: Float[ArrayLike, "*#batch 3"],
+    r_dot: Float[ArrayLike, "*#batch 3"] | None = None,
     frame: str = "body",
 ) -> Float[Array, "*batch 3"]:
     """Space-frame velocity of a point with body coordinates ``r`` (relative velocity ``r_dot``).
@@ -208,12 +208,12 @@ def point_velocity(
 
 
 def point_acceleration(
-    q: Float[Array, "*batch 4"],
-    omega: Float[Array, "*batch 3"],
-    alpha: Float[Array, "*batch 3"],
-    r: Float[Array, "*batch 3"],
-    r_dot: Float[Array, "*batch 3"] | None = None,
-    r_ddot: Float[Array, "*batch 3"] | None = None,
+    q: Float[ArrayLike, "*#batch 4"],
+    omega: Float[ArrayLike, "*#batch 3"],
+    alpha: Float[ArrayLike, "*#batch 3"],
+    r: Float[ArrayLike, "*#batch 3"],
+    r_dot: Float[ArrayLike, "*#batch 3"] | None = None,
+    r_ddot: Float[ArrayLike, "*#batch 3"] | None = None,
     frame: str = "body",
 ) -> Float[Array, "*batch 3"]:
     """Space-frame acceleration of a point with body coordinates ``r``.

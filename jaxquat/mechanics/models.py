@@ -14,7 +14,8 @@ schedule, a neural network); ``args`` of ``diffeqsolve`` are passed to it.
 
 from __future__ import annotations
 
-from typing import Any, Callable, ClassVar
+from collections.abc import Callable
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp

@@ -16,12 +16,13 @@ closed-form ``qddot`` (:func:`jaxquat.euler_parameter_acceleration`).
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import equinox as eqx
 import jax.numpy as jnp
 from jax import Array
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float
 
 from .. import _arrays, _checks, _quaternion, _rates
 from .inertia import validated
@@ -79,7 +80,7 @@ class EulerParameterBody(_Body):
 
 
 def invariants(
-    q: Float[Array, "*batch 4"], omega: Float[Array, "*batch 3"], inertia: Float[Array, "*batch 3 3"]
+    q: Float[ArrayLike, "*#batch 4"], omega: Float[ArrayLike, "*#batch 3"], inertia: Float[ArrayLike, "*#batch 3 3"]
 ) -> dict[str, Array]:
     """Quantities to monitor a run: ``energy`` (1/2 w.Iw, as :func:`jaxquat.kinetic_energy`),
     ``momentum_body`` (I w, as :func:`jaxquat.angular_momentum`), ``momentum_space`` (A I w, with

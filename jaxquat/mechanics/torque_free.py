@@ -43,7 +43,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 from jax import Array
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float
 
 from .. import _arrays, _checks, _quaternion, _rotation, _safe, _trig
 from .elliptic import agm, am, amplitude, incomplete, quarter_period, reduced_amplitude, rf, sn_cn_dn
@@ -214,10 +214,10 @@ def propagate(q0: Array, omega0: Array, moments: Array, t: Array) -> tuple[Array
 
 
 def euler_poinsot(
-    q0: Float[Array, "*batch 4"],
-    omega0: Float[Array, "*batch 3"],
-    moments: Float[Array, "*batch 3"],
-    t: Float[Array, "*batch"],
+    q0: Float[ArrayLike, "*#batch 4"],
+    omega0: Float[ArrayLike, "*#batch 3"],
+    moments: Float[ArrayLike, "*#batch 3"],
+    t: Float[ArrayLike, "*#batch"],
 ) -> tuple[Float[Array, "*batch 4"], Float[Array, "*batch 3"]]:
     """Exact attitude and body angular velocity of a torque-free rigid body at time ``t``.
 
@@ -255,7 +255,9 @@ def euler_poinsot(
     return q.astype(dtype), w.astype(dtype)
 
 
-def polhode_period(omega0: Float[Array, "*batch 3"], moments: Float[Array, "*batch 3"]) -> Float[Array, "*batch"]:
+def polhode_period(
+    omega0: Float[ArrayLike, "*#batch 3"], moments: Float[ArrayLike, "*#batch 3"]
+) -> Float[Array, "*batch"]:
     """Period ``4 K(m) / lambda`` of the body angular velocity of a torque-free body.
 
     For a body spinning near its intermediate axis this is twice the

@@ -12,11 +12,12 @@ parameters go in ``args`` (any pytree) so they can be differentiated.
 
 from __future__ import annotations
 
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import jax.numpy as jnp
 from jax import Array
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float
 
 from .. import _arrays, _checks, _quaternion, _trig
 
@@ -50,9 +51,9 @@ def as_body_torque(fn: TorqueFn, frame: str = "body") -> TorqueFn:
 
 
 def gravity_gradient_torque(
-    q: Float[Array, "*batch 4"],
-    position: Float[Array, "*batch 3"],
-    inertia: Float[Array, "*batch 3 3"],
+    q: Float[ArrayLike, "*#batch 4"],
+    position: Float[ArrayLike, "*#batch 3"],
+    inertia: Float[ArrayLike, "*#batch 3 3"],
     mu: float | Array = 1.0,
 ) -> Float[Array, "*batch 3"]:
     """Gravity-gradient torque on a body in a central inverse-square field (body frame).
@@ -73,7 +74,7 @@ def gravity_gradient_torque(
     return coeff[..., None] * jnp.cross(rb, _arrays.matvec(inertia, rb))
 
 
-def circular_orbit_gravity_gradient(inertia: Float[Array, "3 3"], mean_motion: float | Array) -> TorqueFn:
+def circular_orbit_gravity_gradient(inertia: Float[ArrayLike, "3 3"], mean_motion: float | Array) -> TorqueFn:
     """Body torque function ``fn(t, q, omega, args)`` for gravity gradient on a circular orbit.
 
     The orbit lies in the space frame's x-y plane; the unit radial direction at

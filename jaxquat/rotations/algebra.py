@@ -18,7 +18,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 from jax import Array
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float
 
 from .. import _arrays, _checks, _quaternion, _safe
 
@@ -40,7 +40,7 @@ __all__ = [
 ]
 
 
-def multiply(p: Float[Array, "*batch 4"], q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4"]:
+def multiply(p: Float[ArrayLike, "*#batch 4"], q: Float[ArrayLike, "*#batch 4"]) -> Float[Array, "*batch 4"]:
     """Hamilton product ``p q``.
 
     ``(p0, p) (q0, q) = (p0 q0 - p.q,  p0 q + q0 p + p x q)``: [T] eq. (5) and
@@ -52,12 +52,12 @@ def multiply(p: Float[Array, "*batch 4"], q: Float[Array, "*batch 4"]) -> Float[
     return _quaternion.multiply(p, q)
 
 
-def conjugate(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4"]:
+def conjugate(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     """Conjugate ``q* = (q0, -q)``, [T] eq. (9). The inverse rotation for unit ``q``."""
     return _quaternion.conjugate(_checks.quat(q))
 
 
-def norm(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch"]:
+def norm(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch"]:
     """Euclidean norm ``|q| = sqrt(q q*)``, [T] eq. (12).
 
     The gradient at ``q = 0`` is 0 (a subgradient of the cone) instead of NaN.
@@ -66,7 +66,7 @@ def norm(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch"]:
     return _safe.safe_norm(q)
 
 
-def normalize(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4"]:
+def normalize(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     """``q / |q|``, [T] eq. (54).
 
     A zero quaternion has no direction: its result is NaN in all four
@@ -77,7 +77,7 @@ def normalize(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4"]:
     return q / jnp.sqrt(_safe.norm_sq(q))[..., None]
 
 
-def inverse(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4"]:
+def inverse(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     """Multiplicative inverse ``q^-1 = q* / |q|^2`` of any non-zero quaternion, [T] eq. (14).
 
     For a zero quaternion the result is NaN (element-wise, as in :func:`normalize`).
@@ -106,7 +106,7 @@ def _exp(q: Array) -> Array:
     return _quaternion.scalar_vector(scale * cos, v, scale * sinc)
 
 
-def exp(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4"]:
+def exp(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     """Quaternion exponential ``exp(w, v) = e^w (cos|v|, sin|v| v/|v|)``, [T] eqs. (55)-(56).
 
     Defined for every quaternion. ``sin|v|/|v|`` and ``cos|v|`` are evaluated as
@@ -132,7 +132,7 @@ def _log(q: Array) -> Array:
     return _quaternion.scalar_vector(scalar, vec)
 
 
-def log(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4"]:
+def log(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     """Principal quaternion logarithm ``log q = (ln|q|, atan2(|v|, w) v/|v|)``, [T] eq. (58).
 
     For a unit quaternion ``(cos(phi/2), sin(phi/2) u)`` this is the pure
@@ -148,7 +148,7 @@ def log(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4"]:
     return _log(_checks.quat(q))
 
 
-def power(q: Float[Array, "*batch 4"], t: Float[Array, "*batch"] | float) -> Float[Array, "*batch 4"]:
+def power(q: Float[ArrayLike, "*#batch 4"], t: Float[ArrayLike, "*#batch"] | float) -> Float[Array, "*batch 4"]:
     """Quaternion power ``q^t = exp(t log q)``, [T] eq. (57).
 
     For unit ``q = (cos(phi/2), sin(phi/2) u)``: ``q^t = (cos(t phi/2), sin(t phi/2) u)``,
@@ -160,7 +160,7 @@ def power(q: Float[Array, "*batch 4"], t: Float[Array, "*batch"] | float) -> Flo
     return _exp(t[..., None] * _log(q))
 
 
-def left_matrix(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4 4"]:
+def left_matrix(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4 4"]:
     """The 4x4 matrix of left multiplication: ``multiply(q, p) == left_matrix(q) @ p``.
 
     ``[[q0, -q^T], [q, q0 I + q~]]``: Chou's "+" matrix [C] eq. (11), Schwab's
@@ -178,7 +178,7 @@ def left_matrix(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4 4"]:
     )
 
 
-def right_matrix(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4 4"]:
+def right_matrix(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4 4"]:
     """The 4x4 matrix of right multiplication: ``multiply(p, q) == right_matrix(q) @ p``.
 
     ``[[q0, -q^T], [q, q0 I - q~]]``: Chou's "-" matrix [C] eq. (11), Schwab's
@@ -196,7 +196,7 @@ def right_matrix(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4 4"]:
     )
 
 
-def rotate(q: Float[Array, "*batch 4"], v: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3"]:
+def rotate(q: Float[ArrayLike, "*#batch 4"], v: Float[ArrayLike, "*#batch 3"]) -> Float[Array, "*batch 3"]:
     """Active rotation of vectors: ``(0, v') = q (0, v) q*``, [T] eq. (23), [S] eq. (5).
 
     Evaluated as ``v' = v + 2 w (u x v) + 2 u x (u x v)`` with ``q = (w, u)``,
@@ -208,7 +208,7 @@ def rotate(q: Float[Array, "*batch 4"], v: Float[Array, "*batch 3"]) -> Float[Ar
     return _quaternion.rotate(q, v)
 
 
-def canonicalize(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 4"]:
+def canonicalize(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     """Pick the representative of ``{q, -q}`` (the same rotation, [T] eq. (30)) with ``w >= 0``.
 
     Ties on ``w = 0`` (180-degree rotations) are broken by the first non-zero

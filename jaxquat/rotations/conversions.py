@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 from jax import Array
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float
 
 from .. import _arrays, _checks, _quaternion, _rotation, _safe, _trig
 
@@ -27,7 +27,7 @@ __all__ = [
 ]
 
 
-def to_matrix(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
+def to_matrix(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
     """Rotation matrix ``R(q)`` with ``rotate(q, v) == R @ v``.
 
     ``R = I + 2 w [u]x + 2 [u]x^2`` for ``q = (w, u)``, i.e. [T] eq. (27a),
@@ -38,7 +38,7 @@ def to_matrix(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
     return _rotation.to_matrix(_checks.quat(q))
 
 
-def from_matrix(m: Float[Array, "*batch 3 3"], *, nearest: bool = False) -> Float[Array, "*batch 4"]:
+def from_matrix(m: Float[ArrayLike, "*batch 3 3"], *, nearest: bool = False) -> Float[Array, "*batch 4"]:
     """Unit quaternion of a rotation matrix, canonical sign (``w >= 0``).
 
     Every column of the symmetric matrix ``K = 4 q q^T`` is a linear function of
@@ -69,7 +69,7 @@ def from_matrix(m: Float[Array, "*batch 3 3"], *, nearest: bool = False) -> Floa
     return _rotation.top_eigenvector(_rotation.k_matrix(m)) if nearest else _rotation.from_matrix_shepperd(m)
 
 
-def to_rotvec(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3"]:
+def to_rotvec(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3"]:
     """Rotation vector ``phi u`` with ``phi`` in ``[0, pi]``.
 
     ``2 atan2(|v|, |w|) sign(w) v / |v|`` for ``q = (w, v)``: the inverse of
@@ -83,7 +83,7 @@ def to_rotvec(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3"]:
     return _rotation.to_rotvec(_safe.rescaled(_checks.quat(q)))
 
 
-def from_rotvec(r: Float[Array, "*batch 3"]) -> Float[Array, "*batch 4"]:
+def from_rotvec(r: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 4"]:
     """Unit quaternion of the rotation vector ``r = phi u``: ``(cos(phi/2), sin(phi/2) u)``.
 
     [T] eq. (31), [S] eq. (9); equal to ``exp((0, r/2))``. Smooth at ``r = 0``
@@ -93,7 +93,7 @@ def from_rotvec(r: Float[Array, "*batch 3"]) -> Float[Array, "*batch 4"]:
     return _rotation.from_rotvec(_checks.vec3(r, "r"))
 
 
-def to_axis_angle(q: Float[Array, "*batch 4"]) -> tuple[Float[Array, "*batch 3"], Float[Array, "*batch"]]:
+def to_axis_angle(q: Float[ArrayLike, "*batch 4"]) -> tuple[Float[Array, "*batch 3"], Float[Array, "*batch"]]:
     """Unit axis ``u`` and angle ``phi`` in ``[0, pi]``, [T] eq. (32).
 
     Computed as ``phi = 2 atan2(|v|, |w|)`` (not ``2 acos(w)``, which loses half
@@ -112,7 +112,9 @@ def to_axis_angle(q: Float[Array, "*batch 4"]) -> tuple[Float[Array, "*batch 3"]
     return axis, angle
 
 
-def from_axis_angle(axis: Float[Array, "*batch 3"], angle: Float[Array, "*batch"] | float) -> Float[Array, "*batch 4"]:
+def from_axis_angle(
+    axis: Float[ArrayLike, "*#batch 3"], angle: Float[ArrayLike, "*#batch"] | float
+) -> Float[Array, "*batch 4"]:
     """Unit quaternion ``(cos(phi/2), sin(phi/2) u)`` of a rotation by ``phi`` about ``u``, [T] eq. (31).
 
     The axis is normalised here (so any non-zero axis is accepted); a zero axis
@@ -128,7 +130,7 @@ def from_axis_angle(axis: Float[Array, "*batch 3"], angle: Float[Array, "*batch"
     return jnp.where(((nsq == 0) & (angle != 0))[..., None], jnp.nan, _quaternion.scalar_vector(c, unit, s))
 
 
-def to_mrp(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3"]:
+def to_mrp(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3"]:
     """Modified Rodrigues parameters ``p = v / (|q| + w) = tan(phi/4) u``, with ``|p| <= 1``.
 
     ``q`` is first put in the ``w >= 0`` hemisphere, so the shadow set is never
@@ -142,7 +144,7 @@ def to_mrp(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch 3"]:
     return q[..., 1:] / (n + w)[..., None]
 
 
-def from_mrp(p: Float[Array, "*batch 3"]) -> Float[Array, "*batch 4"]:
+def from_mrp(p: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 4"]:
     """Unit quaternion of modified Rodrigues parameters: ``((1 - |p|^2), 2 p) / (1 + |p|^2)``.
 
     Any ``p`` is accepted (``|p| > 1`` is the shadow set, giving ``w < 0``). Smooth everywhere.

@@ -17,7 +17,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 from jax import Array
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float
 
 from .. import _arrays, _checks, _quaternion, _rotation, _safe
 
@@ -38,10 +38,10 @@ def _frame(v1: Array, v2: Array) -> Array:
 
 
 def triad(
-    b1: Float[Array, "*batch 3"],
-    b2: Float[Array, "*batch 3"],
-    r1: Float[Array, "*batch 3"],
-    r2: Float[Array, "*batch 3"],
+    b1: Float[ArrayLike, "*#batch 3"],
+    b2: Float[ArrayLike, "*#batch 3"],
+    r1: Float[ArrayLike, "*#batch 3"],
+    r2: Float[ArrayLike, "*#batch 3"],
 ) -> Float[Array, "*batch 4"]:
     """TRIAD (Black 1964; Shuster & Oh 1981): the attitude from two vector pairs.
 
@@ -157,9 +157,9 @@ def _observations(vectors_body, vectors_ref, weights):
 
 
 def quest(
-    vectors_body: Float[Array, "*batch n 3"],
-    vectors_ref: Float[Array, "*batch n 3"],
-    weights: Float[Array, "*batch n"] | None = None,
+    vectors_body: Float[ArrayLike, "*#batch n 3"],
+    vectors_ref: Float[ArrayLike, "*#batch n 3"],
+    weights: Float[ArrayLike, "*#batch n"] | None = None,
 ) -> Float[Array, "*batch 4"]:
     """QUEST (Shuster & Oh 1981): the attitude ``q`` minimising ``sum_i w_i |r_i - R(q) b_i|^2``.
 
@@ -197,7 +197,7 @@ def _quest(b: Array, r: Array, w: Array) -> Array:
 
 
 def attitude_covariance(
-    vectors_body: Float[Array, "*batch n 3"], noise: Float[Array, "*batch n"] | float
+    vectors_body: Float[ArrayLike, "*#batch n 3"], noise: Float[ArrayLike, "*#batch n"] | float
 ) -> Float[Array, "*batch 3 3"]:
     """Shuster's QUEST measurement-model covariance of the attitude error (body frame, rad^2).
 
@@ -227,9 +227,9 @@ def attitude_covariance(
 
 
 def align_vectors(
-    a: Float[Array, "*batch n 3"],
-    b: Float[Array, "*batch n 3"],
-    weights: Float[Array, "*batch n"] | None = None,
+    a: Float[ArrayLike, "*#batch n 3"],
+    b: Float[ArrayLike, "*#batch n 3"],
+    weights: Float[ArrayLike, "*#batch n"] | None = None,
     *,
     return_sensitivity: bool = False,
 ) -> Float[Array, "*batch 4"] | tuple[Float[Array, "*batch 4"], Float[Array, "*batch 3 3"]]:

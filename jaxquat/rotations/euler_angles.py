@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 from jax import Array
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float
 
 from .. import _arrays, _checks, _quaternion, _safe, _trig
 
@@ -33,7 +33,7 @@ def _elementary(axis: int, s: Array, c: Array) -> Array:
     return jnp.stack([c, *comps], axis=-1)
 
 
-def from_euler(angles: Float[Array, "*batch 3"], seq: str) -> Float[Array, "*batch 4"]:
+def from_euler(angles: Float[ArrayLike, "*batch 3"], seq: str) -> Float[Array, "*batch 4"]:
     """Unit quaternion of three successive elementary rotations.
 
     Extrinsic ``"abc"``: ``q = q_c(angles[2]) q_b(angles[1]) q_a(angles[0])``;
@@ -57,7 +57,7 @@ def _gimbal_tolerance(dtype) -> float:
     return 10.0 * float(jnp.finfo(dtype).eps)
 
 
-def to_euler(q: Float[Array, "*batch 4"], seq: str) -> Float[Array, "*batch 3"]:
+def to_euler(q: Float[ArrayLike, "*batch 4"], seq: str) -> Float[Array, "*batch 3"]:
     """Euler angles of ``q`` for the sequence ``seq`` (inverse of :func:`from_euler`).
 
     Ranges (as scipy): first and third angles in ``[-pi, pi]``; the middle angle

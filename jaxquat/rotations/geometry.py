@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 from jax import Array
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float
 
 from .. import _arrays, _checks, _quaternion, _rotation, _safe, _trig
 
@@ -22,7 +22,7 @@ def _angle(q: Array) -> Array:
     return 2.0 * _trig.atan2(_safe.safe_norm(q[..., 1:]), _safe.safe_sqrt(w * w))
 
 
-def angle(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch"]:
+def angle(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch"]:
     """Rotation angle ``phi = 2 atan2(|v|, |w|)`` in ``[0, pi]`` ([T] eq. (32a), without ``acos``).
 
     Scale-invariant. ``phi`` is not differentiable at the identity (it is the
@@ -32,7 +32,7 @@ def angle(q: Float[Array, "*batch 4"]) -> Float[Array, "*batch"]:
     return _angle(_safe.rescaled(_checks.quat(q)))
 
 
-def angle_between(p: Float[Array, "*batch 4"], q: Float[Array, "*batch 4"]) -> Float[Array, "*batch"]:
+def angle_between(p: Float[ArrayLike, "*#batch 4"], q: Float[ArrayLike, "*#batch 4"]) -> Float[Array, "*batch"]:
     """Geodesic distance on SO(3): the angle of the relative rotation ``p* q``, in ``[0, pi]``.
 
     Symmetric in ``p`` and ``q`` and invariant to the sign of either. Assumes unit inputs.
@@ -41,7 +41,9 @@ def angle_between(p: Float[Array, "*batch 4"], q: Float[Array, "*batch 4"]) -> F
     return _angle(_quaternion.multiply(_quaternion.conjugate(p), q))
 
 
-def mean(q: Float[Array, "*batch n 4"], weights: Float[Array, "*batch n"] | None = None) -> Float[Array, "*batch 4"]:
+def mean(
+    q: Float[ArrayLike, "*#batch n 4"], weights: Float[ArrayLike, "*#batch n"] | None = None
+) -> Float[Array, "*batch 4"]:
     """Chordal L2 mean of rotations (Markley, Cheng, Crassidis & Oshman 2007).
 
     The unit eigenvector of the largest eigenvalue of ``M = sum_i w_i q_i q_i^T``

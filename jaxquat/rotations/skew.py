@@ -8,14 +8,14 @@ the angular velocity.
 from __future__ import annotations
 
 from jax import Array
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float
 
 from .. import _arrays, _checks
 
 __all__ = ["hat", "vee"]
 
 
-def hat(v: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+def hat(v: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     """The skew-symmetric cross-product matrix ``v~`` with ``v~ x = v x x``.
 
     ``[[0, -v3, v2], [v3, 0, -v1], [-v2, v1, 0]]``: [S] eq. (4), [C] ``a~`` under
@@ -24,7 +24,7 @@ def hat(v: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     return _arrays.hat(_checks.vec3(v))
 
 
-def vee(m: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
+def vee(m: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     """The vector of the skew-symmetric part of ``m``: ``vee(hat(v)) == v``.
 
     ``vee(m) = (m32 - m23, m13 - m31, m21 - m12) / 2``. Averaging both
