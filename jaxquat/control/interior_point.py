@@ -128,7 +128,24 @@ def solve_shooting(
     the nodes ``x_1 .. x_N``; they need not satisfy continuity, which is the point of
     multiple shooting). Stops when the scaled KKT error (Waechter & Biegler eq. (5), ``mu = 0``)
     falls below ``tol`` or after ``max_iter`` iterations. Traceable: call it inside ``jit`` and
-    ``vmap`` it over a batch of ``x0``/``data``."""
+    ``vmap`` it over a batch of ``x0``/``data``.
+
+    Args:
+        problem: the stage, terminal and objective functions (:class:`ShootingProblem`).
+        x0: the fixed initial state ``(nx,)``.
+        X: initial guess of the nodes ``x_1 .. x_N``, ``(N, nx)``.
+        U: initial guess of the controls, ``(N, nu)``, one per shooting interval.
+        p: initial guess of the parameters ``(np,)`` shared by all stages (e.g. a free final time).
+        data: any pytree passed to every problem function unchanged (boundary states, bounds).
+        tol: the scaled KKT error at which the solve stops.
+        max_iter: the most interior-point iterations.
+        mu0: the initial barrier parameter (small for a warm start near the solution).
+
+    Returns:
+        A :class:`ShootingSolution`: the states, controls and parameters, the multipliers
+        (``costates``, ``terminal_multipliers``, ``path_multipliers``), ``objective``,
+        ``violation``, ``kkt``, ``iterations`` and ``converged``.
+    """
     N, nx = X.shape
     nu = U.shape[1]
     n_p = p.shape[0]

@@ -795,7 +795,33 @@ def minimum_energy_reorientation(
 
     Mesh: ``mesh`` interval lengths (any positive scale; then ``intervals`` is ``len(mesh)``)
     instead of ``intervals`` equal ones; :func:`refine_mesh` halves the intervals next to the
-    torque's switches of an earlier result, to solve again with ``init=`` it."""
+    torque's switches of an earlier result, to solve again with ``init=`` it.
+
+    Args:
+        inertia: body inertia tensor ``(3, 3)``.
+        q0: initial attitude ``(..., 4)`` (leading axes: a batch of problems).
+        qf: target attitude ``(..., 4)`` (either sign).
+        duration: the fixed final time ``T``.
+        omega0: initial body rate ``(..., 3)``; default rest.
+        omegaf: final body rate ``(..., 3)``; default rest.
+        torque_bound: per-axis body torque bound ``(3,)``, or ``None``.
+        rate_bound: ``|w_i| <= rate_bound`` at every integration step, or ``None``.
+        keep_out: ``(body_axis (3,), inertial_direction (3,), half_angle_rad)`` cones.
+        keep_in: cones of the same form the axis stays in.
+        intervals: number of torque intervals (ignored when ``mesh`` is given).
+        substeps: RKMK4 steps per interval.
+        tol: the KKT error at which a start has converged.
+        max_iter: interior-point iterations per start.
+        throw: raise ``RuntimeError`` when a problem has no converged start.
+        starts: starts solved side by side per problem.
+        seed: the random draw of the starts after the first.
+        init: an earlier (unbatched) result on any grid to warm-start from.
+        mesh: interval lengths for a non-uniform mesh.
+
+    Returns:
+        A :class:`ConstrainedReorientation` (fields as :func:`optimal_reorientation`'s);
+        ``cost`` is ``int |u|^2 dt``.
+    """
     return optimal_reorientation(
         inertia,
         q0,

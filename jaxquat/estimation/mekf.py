@@ -409,6 +409,22 @@ def mekf(
     ``bias_noise`` as in :func:`mekf_predict`. All arguments broadcast over leading batch axes, so a
     Monte Carlo of many runs is one call (or ``vmap``); everything is differentiable, including
     with respect to the noise parameters (the innovations' log-likelihood is in the result).
+
+    Args:
+        q0: prior attitude ``(..., 4)`` (reference to body; normalised here).
+        bias0: prior gyro bias ``(..., 3)`` (rad/s).
+        P0: prior covariance of ``(dtheta, dbias)``, ``(..., 6, 6)``.
+        dt: the sample interval (s).
+        gyro: rate-gyro samples ``(..., n, 3)`` (rad/s, body frame).
+        vectors_body: measured directions ``(..., n, m, 3)`` (body frame; NaN rows missing).
+        vectors_ref: the same directions in the reference frame ``(..., n, m, 3)``.
+        vector_noise: per-sensor angular noise (rad), a scalar or ``(..., m)``.
+        gyro_noise: gyro rate noise density (rad/s/sqrt(Hz)).
+        bias_noise: bias random-walk density (rad/s^2/sqrt(Hz)).
+
+    Returns:
+        A :class:`FilterResult`, one row per sample: ``q``, ``bias``, ``P``, the normalised
+        innovations ``nis`` and the ``log_likelihood`` of the record.
     """
     args = record(q0, bias0, P0, dt, gyro, vectors_body, vectors_ref, vector_noise, gyro_noise, bias_noise)
     return FilterResult(

@@ -41,6 +41,20 @@ def solve_fixed_steps(
     ``checkpoint``: rematerialise each step in the backward pass (``jax.checkpoint``), so
     reverse mode stores one state per step. ``ts`` may be traced (only its values are used);
     ``substeps`` must be a Python int.
+
+    Args:
+        solver: any diffrax solver (a jaxquat Lie solver or splitting, or diffrax's own), driven
+            through its ``init`` and ``step`` only.
+        terms: the solver's terms, e.g. ``diffrax.ODETerm(RigidBody(inertia))``.
+        ts: the times ``(n,)``, ``n >= 2``, increasing; the state is returned at each.
+        y0: the state at ``ts[0]`` (any pytree).
+        args: passed to the vector field (unless ``interval_args`` is given).
+        substeps: equal solver steps per interval of ``ts``.
+        interval_args: per-interval ``args``, leaves with a leading axis ``n - 1``.
+        checkpoint: rematerialise each step in reverse mode (memory: one state per step).
+
+    Returns:
+        ``y0``'s pytree with a leading axis ``n`` on every leaf: the state at each of ``ts``.
     """
     if not isinstance(substeps, int) or substeps < 1:
         raise ValueError(f"argument 'substeps' must be a positive int, got {substeps!r}")

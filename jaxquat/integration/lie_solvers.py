@@ -304,7 +304,17 @@ class AbstractLieSolver(diffrax.AbstractSolver):
     vector field into the *tangent* field ``tangent(t, y)``, which holds the body rate
     ``w_b`` (``(..., 3)``) on each quaternion leaf and the vector field on the others, and
     calls ``lie_step``. ``simulate`` and ``minimum_time_reorientation`` drive every solver
-    through ``init`` and ``step`` only (:func:`jaxquat.solve_fixed_steps`)."""
+    through ``init`` and ``step`` only (:func:`jaxquat.solve_fixed_steps`).
+
+    Every Lie solver (``LieEuler``, ``RKMK4``, ``RKMK45``, ``RKMKTsit5``, ``RKMK8``) is built
+    the same way, e.g. ``RKMK45(quaternions={"q": True, "w": False})``, and passed to
+    ``diffrax.diffeqsolve`` as its ``solver``.
+
+    Attributes:
+        quaternions: which leaves of the ODE state are unit quaternions ``(..., 4)``: a pytree
+            prefix of the state with ``True`` on each (e.g. ``(True, False, False)`` for
+            ``(q, w, wheel_rates)``). ``None``: the state is the rigid body's ``(q, w)``.
+    """
 
     quaternions: Any = eqx.field(static=True, default=None, converter=QuaternionMask.of)
     term_structure: ClassVar = diffrax.AbstractTerm

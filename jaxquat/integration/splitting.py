@@ -64,7 +64,16 @@ class AbstractSplitting(diffrax.AbstractSolver):
     is exact without a torque: then :func:`jaxquat.simulate` steps from one saved time to
     the next). Torque-free, each step ends on the initial ``|m|`` (``m = I w``) and, where
     ``exact_energy`` or below float64, on the initial energy (:func:`_onto_invariants`;
-    float32 drift over 10^5 steps 7.7e-3 -> 2.4e-7, see ``docs/integrators.md``)."""
+    float32 drift over 10^5 steps 7.7e-3 -> 2.4e-7, see ``docs/integrators.md``).
+
+    The four splittings take the rigid body's state ``(q, w)`` and the terms of
+    ``diffrax.ODETerm(RigidBody(inertia, torque))`` in principal axes (:func:`jaxquat.simulate`
+    rotates a full tensor there), e.g. ``EulerPoinsotSplit4()``.
+
+    Attributes:
+        kick_iterations: fixed-point sweeps of the torque kick's implicit (adjoint) half, for a
+            torque that depends on the rates; ``0`` suffices for one of ``(t, q)`` alone.
+    """
 
     term_structure: ClassVar = diffrax.AbstractTerm
     interpolation_cls: ClassVar = SlerpInterpolation

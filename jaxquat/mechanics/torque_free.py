@@ -244,6 +244,16 @@ def euler_poinsot(
     derivative is that of the steady rotation ``q0 Exp(w t)``, which omits the
     linearised precession: the limit of nearby derivatives differs there.
     See the module docstring for the formulas.
+
+    Args:
+        q0: attitude at time 0 ``(..., 4)`` (body to space, unit).
+        omega0: body angular velocity at time 0 ``(..., 3)``, in principal axes.
+        moments: principal moments of inertia ``(..., 3)``, positive, in any order.
+        t: times ``(...)`` (no trailing axis), any sign.
+
+    Returns:
+        ``(q, omega)``: the attitude ``(..., 4)`` and the body angular velocity ``(..., 3)`` at
+        ``t``, the batch axes of all four arguments broadcast.
     """
     moments = _validated_moments(moments)
     q0, omega0, moments, t = _checks.arguments(
