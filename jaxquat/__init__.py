@@ -169,6 +169,7 @@ from .control.interior_point import (
 )
 from .control.optimal_control import (
     ConstrainedReorientation as ConstrainedReorientation,
+    ReactionWheels as ReactionWheels,
     minimum_energy_reorientation as minimum_energy_reorientation,
     minimum_fuel_reorientation as minimum_fuel_reorientation,
     constrained_minimum_time as constrained_minimum_time,
@@ -311,6 +312,7 @@ __all__ = [
     "ShootingSolution",
     "solve_shooting",
     "ConstrainedReorientation",
+    "ReactionWheels",
     "minimum_energy_reorientation",
     "minimum_fuel_reorientation",
     "optimal_reorientation",

@@ -569,6 +569,7 @@ def test_every_public_name_is_in_the_contract():
         "ShootingProblem",
         "ShootingSolution",
         "ConstrainedReorientation",
+        "ReactionWheels",
         "constrained_minimum_time",
         "minimum_energy_reorientation",
         "minimum_fuel_reorientation",

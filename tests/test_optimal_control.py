@@ -233,9 +233,13 @@ def test_minimum_fuel_is_bang_off_bang_about_the_eigenaxis():
 
 @pytest.fixture(scope="module")
 def bilimoria_wie():
-    """Bilimoria & Wie's 180 degrees about x with J = I, |u_i| <= 1, by the interior-point path."""
+    """Bilimoria & Wie's 180 degrees about x with J = I, |u_i| <= 1, by the interior-point path.
+    With a rate bound of 100 that does not bind (the optimum peaks at 1.63 rad/s): the
+    configuration of the rate-bound test below, which then reuses this compiled solver (20 s)."""
     qf = np.array([0.0, 1.0, 0.0, 0.0])
-    return jq.minimum_time_reorientation(np.eye(3), np.ones(3), Q0, qf, intervals=N, method="interior_point")
+    return jq.minimum_time_reorientation(
+        np.eye(3), np.ones(3), Q0, qf, intervals=N, rate_bound=100.0, method="interior_point"
+    )
 
 
 def test_bilimoria_wie_time_and_the_switching_function_certificate(bilimoria_wie):
@@ -265,6 +269,98 @@ def test_a_rate_bound_through_the_binding_signature_costs_time(bilimoria_wie):
     qs, ws = _resimulate(jnp.eye(3), Q0, np.zeros(3), r.controls, float(r.time), 40)
     assert np.max(np.abs(ws)) <= 1.0 + 1e-4
     assert np.all(np.abs(np.asarray(r.controls)) <= 1 + 1e-8)
+
+
+# ------------------------------------------------------------------ reaction wheels
+
+
+def _wheel_resimulation(r, inertia, axes, h0, substeps):
+    """The returned wheel torques held per interval and integrated with ``substeps`` RKMK4 steps
+    per interval through :class:`jaxquat.ReactionWheelSpacecraft`'s own vector field (its
+    ``qdot`` on the quaternion leaf), independent of the optimiser's."""
+    model = jq.ReactionWheelSpacecraft(inertia, axes, lambda t, y, u: (u, jnp.zeros(3)))
+    n = r.controls.shape[0]
+    ts = jnp.linspace(0.0, float(r.time), n + 1)
+    y0 = {"q": jnp.asarray(Q0), "w": jnp.zeros(3), "h": jnp.asarray(h0, jnp.float64)}
+    import diffrax
+
+    ys = jq.solve_fixed_steps(
+        jq.RKMK4(quaternions=model.quaternions),
+        diffrax.ODETerm(model),
+        ts,
+        y0,
+        substeps=substeps,
+        interval_args=r.controls,
+    )
+    return model, ys
+
+
+@pytest.fixture(scope="module")
+def wheel_bilimoria_wie():
+    """Bilimoria & Wie's 180 degrees about x turned by three wheels on the body axes (J = I,
+    |u_i| <= 1, wheels at rest): a momentum bound of 10 that does not bind, and one of 1.5 that
+    does (1.5 converges in 3.7 s, 1.2 in 10.4 s: the slowest of the 8 starts sets the time).
+    Both with a rate bound and a keep-out cone that do not bind (the body x axis, which starts and
+    ends on inertial +x, kept 1 degree from -x): the configuration of examples/wheel_slew.py,
+    whose test then reuses the compiled solver (20 s)."""
+    qf = np.array([0.0, 1.0, 0.0, 0.0])
+    idle = dict(rate_bound=100.0, keep_out=[(np.array([1.0, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0]), 0.0175)])
+    free = jq.minimum_time_reorientation(
+        np.eye(3), None, Q0, qf, intervals=N, wheels=jq.ReactionWheels(np.eye(3), 1.0, momentum_limit=10.0), **idle
+    )
+    bound = jq.minimum_time_reorientation(
+        np.eye(3), None, Q0, qf, intervals=N, wheels=jq.ReactionWheels(np.eye(3), 1.0, momentum_limit=1.5), **idle
+    )
+    return free, bound
+
+
+def test_wheels_at_rest_turn_the_unit_body_as_a_body_torque_would(wheel_bilimoria_wie, bilimoria_wie):
+    """With the wheels at rest the total momentum J w + A h stays 0, so the gyroscopic terms vanish
+    and J w' = -A u: for J = A = I the rigid body's problem with the torque -u, whose optimum is
+    the same time."""
+    free, _ = wheel_bilimoria_wie
+    assert bool(free.converged) and float(free.violation) < 1e-9
+    assert np.asarray(free.torque).shape == (N * 4 + 1, 3) and np.asarray(free.wheel_momentum).shape == (N * 4 + 1, 3)
+    np.testing.assert_allclose(float(free.time), float(bilimoria_wie.time), rtol=1e-8)
+    np.testing.assert_allclose(np.asarray(free.wheel_momentum), -np.asarray(free.omega), atol=1e-9)
+
+
+def test_a_wheel_momentum_bound_holds_on_a_finer_resimulation_and_costs_time(wheel_bilimoria_wie):
+    free, bound = wheel_bilimoria_wie
+    assert bool(bound.converged) and float(bound.violation) < 1e-9
+    assert np.max(np.abs(np.asarray(free.wheel_momentum))) > 1.6  # the free optimum peaks at 1.627
+    assert float(bound.time) > float(free.time) * 1.003  # measured 3.2706 against 3.2536 (+0.52 %)
+    model, ys = _wheel_resimulation(bound, np.eye(3), np.eye(3), np.zeros(3), 40)
+    assert np.max(np.abs(np.asarray(ys["h"]))) <= 1.5 * (1 + 1e-4)
+    assert np.all(np.abs(np.asarray(bound.controls)) <= 1 + 1e-8)
+    qf = jnp.asarray([0.0, 1.0, 0.0, 0.0])
+    assert np.linalg.norm(np.asarray(jq.minus(ys["q"][-1], qf))) < 1e-5 and np.linalg.norm(ys["w"][-1]) < 1e-5
+    # The inertial momentum R(q) (J w + A h) is conserved: 0 from rest, on both integrations.
+    momentum = jax.vmap(lambda q, w, h: model.momentum({"q": q, "w": w, "h": h}))(ys["q"], ys["w"], ys["h"])
+    assert np.max(np.abs(np.asarray(momentum))) < 1e-12
+    returned = jax.vmap(lambda q, w, h: jq.rotate(q, w + h))(bound.q, bound.omega, bound.wheel_momentum)
+    assert np.max(np.abs(np.asarray(returned))) < 1e-12
+
+
+def test_wheel_slew_example(wheel_bilimoria_wie, tmp_path):
+    """The reaction-wheel star-tracker slew, least time then least fuel in 1.5 times that time
+    (12 intervals: the fixture's configuration for the first), every constraint checked on a 10x
+    finer re-simulation through ReactionWheelSpacecraft's vector field."""
+    import re
+
+    text = run_example_in_process("examples/wheel_slew.py", "--intervals", "12", "--out", str(tmp_path))
+    assert text.count("converged True") == 2, text
+    sun = [float(x) for x in re.findall(r"least Sun angle ([\d.]+) deg", text)]
+    rate = [float(x) for x in re.findall(r"max rate ([\d.]+)", text)]
+    momentum = [float(x) for x in re.findall(r"max wheel momentum ([\d.]+)", text)]
+    torque = [float(x) for x in re.findall(r"max wheel torque ([\d.]+)", text)]
+    drift = [float(x) for x in re.findall(r"inertial momentum \(0 at the start\) ([\d.e+-]+)", text)]
+    assert min(sun) >= 20.0 - 1e-2 and max(rate) <= 0.15 * (1 + 1e-4), text
+    assert max(momentum) <= 0.12 * (1 + 1e-4) and max(torque) <= 0.1 * (1 + 1e-8), text
+    assert max(drift) < 1e-12, text
+    # Least time: the rate, wheel momentum and torque limits all bind.
+    assert rate[0] > 0.15 * 0.999 and momentum[0] > 0.12 * 0.999 and torque[0] > 0.1 * 0.999, text
+    assert (tmp_path / "wheel_slew.png").stat().st_size > 10_000
 
 
 # ------------------------------------------------------------------ weighted mixes

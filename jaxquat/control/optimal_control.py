@@ -36,7 +36,7 @@ import numpy as np
 from jax import Array
 from jaxtyping import ArrayLike, Float
 
-from .. import _checks, _quaternion, _rates
+from .. import _arrays, _checks, _quaternion, _rates
 from ..integration.fixed_step import solve_fixed_steps
 from ..mechanics.inertia import validated
 from .interior_point import ShootingProblem, solve_shooting
@@ -45,6 +45,7 @@ from ..integration.lie_solvers import RKMK4, BodyRateTerm
 
 __all__ = [
     "ConstrainedReorientation",
+    "ReactionWheels",
     "optimal_reorientation",
     "refine_mesh",
     "minimum_energy_reorientation",
@@ -67,6 +68,11 @@ class ConstrainedReorientation(NamedTuple):
     function ``d(costate . F)/du`` per unit torque; ``kkt_residual``; ``iterations``; ``converged``;
     ``start_costs`` ``(starts,)`` each start's cost where it converged (``inf`` where not): the result
     is the start with the least.
+
+    With ``wheels=`` (a reaction-wheel spacecraft) the controls are the ``n`` wheel motor torques:
+    ``torque`` is ``(len(ts), n)``, ``controls`` and ``switching`` ``(N, n)``, ``costates``
+    ``(N, 7 + n)``, and ``wheel_momentum`` ``(len(ts), n)`` the wheels' axial momenta on ``ts``
+    (``None`` for the rigid body).
     """
 
     time: Array
@@ -83,6 +89,27 @@ class ConstrainedReorientation(NamedTuple):
     iterations: Array
     converged: Array
     start_costs: Array
+    wheel_momentum: Array | None = None
+
+
+class ReactionWheels(NamedTuple):
+    """The reaction wheels that turn the spacecraft in :func:`optimal_reorientation` and its
+    single-objective cases (``wheels=``), the model of :class:`jaxquat.ReactionWheelSpacecraft`.
+
+    ``axes`` ``(n, 3)`` the spin axes in the body frame (normalised; ``A`` has them as columns);
+    ``torque_limit`` the motor torque bound ``|u_i| <= u_max`` (a scalar or ``(n,)``);
+    ``momentum_limit`` the wheel momentum (speed) bound ``|h_i| <= h_max`` at every integration
+    step, or ``None``; ``momentum0`` the wheels' axial momenta at the start ``(n,)`` (default 0).
+    The body is then driven by the wheels alone: ``J w' = -A u - w x (J w + A h)``, ``h' = u``,
+    with ``J`` (the ``inertia`` argument) the spacecraft's inertia without the wheels' axial
+    inertias; the final wheel momenta are free (the total momentum ``R(q) (J w + A h)`` is
+    conserved, so with ``n = 3`` wheels they are fixed by the boundary states anyway).
+    """
+
+    axes: ArrayLike
+    torque_limit: ArrayLike
+    momentum_limit: ArrayLike | None = None
+    momentum0: ArrayLike | None = None
 
 
 _PERTURBATION = 0.2  # scaled torque perturbation of the initial guess
@@ -102,6 +129,10 @@ class _Data(NamedTuple):
     cones: Array  # (n, 8): body axis, inertial direction, cos(half angle), +1 keep-out / -1 keep-in
     weights: Array  # (3,) of the time, int |u|^2 dt and int |u|_1 dt in the cost
     fractions: Array  # (N,) interval lengths over the duration (sum 1; used when not uniform)
+    axes: Array  # (n, 3) wheel spin axes ((0, 3): the rigid body, torqued directly)
+    h0: Array  # (n,) initial wheel momenta
+    h_ref: Array  # wheel momentum scale
+    momentum_bound: Array  # (n,) (inf: none)
 
 
 class _Config(NamedTuple):
@@ -114,6 +145,13 @@ class _Config(NamedTuple):
     fuel: bool = False  # int |u|_1 dt in the cost: controls (v, sigma) with |v_i| <= sigma_i <= 1
     energy: bool = False  # int |u|^2 dt in the cost
     uniform: bool = True  # equal intervals (else data.fractions)
+    wheels: int = 0  # reaction wheels driving the body (0: a body torque, 3 controls)
+    momentum_bounded: bool = False  # |h_i| <= momentum_bound at every integration step
+
+
+def _controls_of(cfg: _Config) -> int:
+    """The number of physical controls: the wheel torques, or the body torque's 3."""
+    return cfg.wheels or 3
 
 
 def _grid(n: int, substeps: int, fractions, dtype) -> Array:
@@ -153,16 +191,53 @@ def held_torque_states(inertia, q0, w0, time, u, substeps: int, fractions=None):
     )
 
 
-def _path(cfg: _Config, data: _Data, qs, ws, c, p, k):
+def held_wheel_states(inertia, axes, q0, w0, h0, time, u, substeps: int, fractions=None):
+    """:func:`held_torque_states` for the reaction-wheel spacecraft (the gyrostat of
+    :class:`jaxquat.ReactionWheelSpacecraft`): the wheel torques ``u`` ``(n_int, n)`` held per
+    interval, ``J w' = -A u - w x (J w + A h)``, ``h' = u``; returns ``(qs, ws, hs)`` on the flat
+    grid, RKMK4 on the quaternion leaf."""
+
+    def field(t, y, u_k):
+        q, w, h = y
+        total = inertia @ w + h @ axes
+        return w, _arrays.symmetric_solve(inertia, -(u_k @ axes) - jnp.cross(w, total)), u_k
+
+    ts = _grid(u.shape[0], substeps, fractions, w0.dtype) * time
+    return solve_fixed_steps(
+        RKMK4(quaternions=(True, False, False)),
+        BodyRateTerm(field),
+        ts,
+        (q0, w0, h0),
+        substeps=1,
+        interval_args=jnp.repeat(u, substeps, axis=0),
+        checkpoint=False,
+    )
+
+
+def _states(cfg: _Config, data: _Data, x0, time, u, substeps: int, fractions=None):
+    """``(qs, ws, hs)`` from the physical start ``x0 = (q, w, h)`` through the held controls
+    ``u``: the rigid body (``hs`` empty) or the wheels."""
+    q0, w0, h0 = x0
+    if not cfg.wheels:
+        qs, ws = held_torque_states(data.inertia, q0, w0, time, u, substeps, fractions)
+        return qs, ws, jnp.zeros(ws.shape[:-1] + (0,), ws.dtype)
+    return held_wheel_states(data.inertia, data.axes, q0, w0, h0, time, u, substeps, fractions)
+
+
+def _path(cfg: _Config, data: _Data, qs, ws, hs, c, p, k):
     """Path constraints ``<= 0`` of one interval (controls ``c``), at every substep's end state."""
     parts = []
-    v = c[:3]
+    nu = _controls_of(cfg)
+    v = c[:nu]
     if cfg.fuel:  # |v_i| <= sigma_i <= 1: sigma is the l1 cost's epigraph variable
-        parts += [v - c[3:], -v - c[3:], c[3:] - 1.0]
+        parts += [v - c[nu:], -v - c[nu:], c[nu:] - 1.0]
     elif cfg.torque_bounded:
         parts += [v - 1.0, -v - 1.0]
     if cfg.rate_bounded:
         r = ws / data.rate_bound
+        parts += [(r - 1.0).ravel(), (-r - 1.0).ravel()]
+    if cfg.momentum_bounded:
+        r = hs / data.momentum_bound[None]
         parts += [(r - 1.0).ravel(), (-r - 1.0).ravel()]
     if cfg.n_cones:
         qn = qs / jnp.linalg.norm(qs, axis=-1, keepdims=True)
@@ -192,22 +267,25 @@ def _problem(cfg: _Config) -> ShootingProblem:
     def duration(p, data):
         return data.duration * p[0] if cfg.min_time else data.duration
 
+    nu = _controls_of(cfg)
+
     def stage(x, c, p, data, k):
         h = duration(p, data) / cfg.intervals if cfg.uniform else duration(p, data) * data.fractions[k]
-        u = data.u_ref * c[:3]
-        qs, ws = held_torque_states(data.inertia, x[:4], x[4:] * data.w_ref, h, u[None], cfg.substeps)
-        x_next = jnp.concatenate([qs[-1], ws[-1] / data.w_ref])
+        u = data.u_ref * c[:nu]
+        start = (x[:4], x[4:7] * data.w_ref, x[7:] * data.h_ref)
+        qs, ws, hs = _states(cfg, data, start, h, u[None], cfg.substeps)
+        x_next = jnp.concatenate([qs[-1], ws[-1] / data.w_ref, hs[-1] / data.h_ref])
         total = _units(data)[1]
         cost = jnp.zeros((), x.dtype)
         if cfg.energy:
             cost = cost + data.weights[1] * h * jnp.sum(u * u) / total
         if cfg.fuel:
             cost = cost + data.weights[2] * h * jnp.sum(data.u_ref * c[3:]) / total
-        return x_next, cost, _path(cfg, data, qs[1:], ws[1:], c, p, k)
+        return x_next, cost, _path(cfg, data, qs[1:], ws[1:], hs[1:], c, p, k)
 
-    def terminal(xN, data):
+    def terminal(xN, data):  # the wheel momenta, if any, are free
         return jnp.concatenate(
-            [_quaternion.multiply(_quaternion.conjugate(data.qf), xN[:4])[1:], xN[4:] - data.wf / data.w_ref]
+            [_quaternion.multiply(_quaternion.conjugate(data.qf), xN[:4])[1:], xN[4:7] - data.wf / data.w_ref]
         )
 
     def objective(p, data):
@@ -253,12 +331,23 @@ def _guess(cfg: _Config, data: _Data):
     ws = rate_n[:, None] * rotvec[None] / data.duration + (1 - s)[:, None] * data.w0[None] + s[:, None] * data.wf[None]
     wm = rate[:, None] * rotvec[None] / data.duration + (1 - sm)[:, None] * data.w0[None] + sm[:, None] * data.wf[None]
     am = accel[:, None] * rotvec[None] / data.duration**2 + (data.wf - data.w0)[None] / data.duration
-    u = jax.vmap(lambda w, a: data.inertia @ a + jnp.cross(w, data.inertia @ w))(wm, am)
+    if cfg.wheels:
+        # Wheel momenta from the body-frame momentum balance without its rotation,
+        # A^T (h - h0) = -J (w - w0), and the wheel torques A^T u = -(J a + w x (J w + A^T h)).
+        spread = jnp.linalg.pinv(data.axes.T)  # (n, 3)
+        hs = data.h0[None] - jax.vmap(lambda w: spread @ (data.inertia @ (w - data.w0)))(ws)
+        hm = data.h0[None] - jax.vmap(lambda w: spread @ (data.inertia @ (w - data.w0)))(wm)
+        u = jax.vmap(lambda w, a, h: -spread @ (data.inertia @ a + jnp.cross(w, data.inertia @ w + h @ data.axes)))(
+            wm, am, hm
+        )
+    else:
+        hs = jnp.zeros((N, 0), dtype)
+        u = jax.vmap(lambda w, a: data.inertia @ a + jnp.cross(w, data.inertia @ w))(wm, am)
     v = u / data.u_ref[None]
     # A fixed perturbation: on the eigenaxis profile itself the off-axis derivatives vanish,
     # and for symmetric bodies it is a saddle point that Newton's method would converge to.
     v = v + _PERTURBATION * jax.random.normal(jax.random.PRNGKey(0), v.shape, dtype)
-    return jnp.concatenate([qs, ws / data.w_ref], axis=1), v
+    return jnp.concatenate([qs, ws / data.w_ref, hs / data.h_ref], axis=1), v
 
 
 def _resampled(cfg: _Config, data: _Data, init):
@@ -278,7 +367,8 @@ def _resampled(cfg: _Config, data: _Data, init):
     i, f = at(edges[1:])
     qs = (1 - f) * q[i] + f * q[i + 1]
     ws = (1 - f) * w[i] + f * w[i + 1]
-    X = jnp.concatenate([qs / jnp.linalg.norm(qs, axis=-1, keepdims=True), ws / data.w_ref], axis=1)
+    hs = (1 - f) * init.h[i] + f * init.h[i + 1] if cfg.wheels else jnp.zeros((ws.shape[0], 0), dtype)
+    X = jnp.concatenate([qs / jnp.linalg.norm(qs, axis=-1, keepdims=True), ws / data.w_ref, hs / data.h_ref], axis=1)
     p = jnp.reshape(jnp.asarray(init.time, dtype) / data.duration, (1,)) if cfg.min_time else jnp.zeros((0,), dtype)
     return X, u / data.u_ref[None], p
 
@@ -324,7 +414,7 @@ def _solve(data: _Data, cfg: _Config, tol, max_iter: int, keys, init=None):
     def one(d, X, V, p, key, first):
         kick = _PERTURBATION * jax.random.normal(key, V.shape, V.dtype)
         U = _controls(cfg, jnp.where(first, V, V + kick), clip)
-        x0 = jnp.concatenate([d.q0, d.w0 / d.w_ref])
+        x0 = jnp.concatenate([d.q0, d.w0 / d.w_ref, d.h0 / d.h_ref])
         return solve_shooting(problem, x0, X, U, p, d, tol=tol, max_iter=max_iter, mu0=mu0)
 
     def pairs(a):  # (B, ...) -> (B * S, ...): each problem once per start
@@ -352,19 +442,20 @@ def _best(cfg: _Config, problem: ShootingProblem, data: _Data, sols) -> Constrai
     best = jnp.where(jnp.any(sols.converged), jnp.argmin(start_costs), jnp.argmin(sols.kkt))
     sol = jax.tree.map(lambda a: a[best], sols)
     T = data.duration * sol.p[0] if cfg.min_time else data.duration
-    u = sol.u[:, :3] * data.u_ref[None]
+    nu = _controls_of(cfg)
+    u = sol.u[:, :nu] * data.u_ref[None]
     # The trajectory, re-integrated from q0 with the returned torque on one flat grid.
     N, m = cfg.intervals, cfg.substeps
     fractions = None if cfg.uniform else data.fractions
     ts = _grid(N, m, fractions, data.q0.dtype) * T
-    qs, ws = held_torque_states(data.inertia, data.q0, data.w0, T, u, m, fractions)
+    qs, ws, hs = _states(cfg, data, (data.q0, data.w0, data.h0), T, u, m, fractions)
 
     def lam_dot_f(v, c, x, y, k):  # costate . F as a function of the scaled torque v
-        return y @ problem.stage(x, c.at[:3].set(v), sol.p, data, k)[0]
+        return y @ problem.stage(x, c.at[:nu].set(v), sol.p, data, k)[0]
 
     # Per unit torque: d/du = d/dv / u_ref.
     switching = (
-        jax.vmap(jax.grad(lam_dot_f))(sol.u[:, :3], sol.u, sol.x[:-1], sol.costates, jnp.arange(N)) / data.u_ref[None]
+        jax.vmap(jax.grad(lam_dot_f))(sol.u[:, :nu], sol.u, sol.x[:-1], sol.costates, jnp.arange(N)) / data.u_ref[None]
     )
     torque = jnp.concatenate([jnp.repeat(u, m, axis=0), u[-1:]])
     return ConstrainedReorientation(
@@ -382,6 +473,7 @@ def _best(cfg: _Config, problem: ShootingProblem, data: _Data, sols) -> Constrai
         sol.iterations,
         sol.converged,
         start_costs,
+        hs if cfg.wheels else None,
     )
 
 
@@ -466,7 +558,9 @@ def _options(tol, max_iter, throw, starts, seed, init) -> tuple:
             raise ValueError(
                 f"argument 'init' must be a single (unbatched) result, got time shaped {np.shape(init.time)}"
             )
+        h = getattr(init, "wheel_momentum", None)
         init = _Warm(*(jnp.asarray(a) for a in (init.time, init.ts, init.q, init.omega, init.torque)))
+        init = init._replace(h=None if h is None else jnp.asarray(h))
     return tol, max_iter, throw, starts, int(seed), init
 
 
@@ -476,6 +570,7 @@ class _Warm(NamedTuple):
     q: Array
     omega: Array
     torque: Array
+    h: Array | None = None  # the wheel momenta of a reaction-wheel result
 
 
 _MAX_STEP_ANGLE = 0.5  # rad the body may turn in one RKMK4 step of the reference profile
@@ -549,15 +644,60 @@ def _prepare(inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out
     return jnp.asarray(inertia, dtype), q0, qf, w0, wf, bound, rate_bound, cones
 
 
-def _run(cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, bound, rate_bound, cones, weights, fractions, options):
+def _wheels(wheels, dtype) -> tuple | None:
+    """The validated ``(axes (n, 3) unit rows, torque_limit (n,), momentum_limit (n,) or None,
+    momentum0 (n,))`` of a :class:`ReactionWheels`, or ``None``."""
+    if wheels is None:
+        return None
+    if not isinstance(wheels, ReactionWheels):
+        raise TypeError(f"argument 'wheels' must be a jaxquat.ReactionWheels, got {type(wheels).__name__}")
+    axes = np.asarray(wheels.axes, np.float64)
+    if axes.ndim != 2 or axes.shape[1] != 3 or axes.shape[0] < 1:
+        raise ValueError(f"wheels.axes must be the spin axes shaped (n, 3), n >= 1, got shape {axes.shape}")
+    norms = np.linalg.norm(axes, axis=1, keepdims=True)
+    if not np.all(norms > 0) or not np.all(np.isfinite(axes)):
+        raise ValueError(f"wheels.axes must be finite nonzero rows, got {axes.tolist()}")
+    axes = axes / norms
+    if np.linalg.matrix_rank(axes) < 3:
+        raise ValueError("wheels.axes must span the three body axes (the wheels cannot turn the body about all axes)")
+    n = axes.shape[0]
+
+    def limit(x, name):
+        x = np.broadcast_to(np.asarray(x, np.float64), (n,)) if np.ndim(x) in (0, 1) else np.asarray(x)
+        if x.shape != (n,) or not np.all(x > 0) or not np.all(np.isfinite(x)):
+            raise ValueError(f"wheels.{name} must be positive and finite, a scalar or shaped ({n},), got {x}")
+        return jnp.asarray(x, dtype)
+
+    h0 = np.zeros(n) if wheels.momentum0 is None else np.asarray(wheels.momentum0, np.float64)
+    if h0.shape != (n,) or not np.all(np.isfinite(h0)):
+        raise ValueError(f"wheels.momentum0 must be finite, shaped ({n},), got {h0}")
+    h_limit = None if wheels.momentum_limit is None else limit(wheels.momentum_limit, "momentum_limit")
+    if h_limit is not None and np.any(np.abs(h0) > np.asarray(h_limit)):
+        raise ValueError(f"wheels.momentum0 {h0} exceeds wheels.momentum_limit {np.asarray(h_limit)}")
+    return jnp.asarray(axes, dtype), limit(wheels.torque_limit, "torque_limit"), h_limit, jnp.asarray(h0, dtype)
+
+
+def _run(
+    cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, bound, rate_bound, cones, weights, fractions, options, wheels
+):
+    """Solve, and raise when a problem did not converge (``throw``). ``wheels`` the validated
+    ``(axes, torque_limit, momentum_limit or None, momentum0)`` or ``None``."""
     tol, max_iter, throw, starts, seed, init = options
     widest = None if fractions is None else float(np.max(fractions))
     check_resolution(duration, q0, qf, w0, wf, cfg.intervals, cfg.substeps, widest)
     dtype = q0.dtype
     batch = q0.shape[:-1]
     inf = jnp.asarray(jnp.inf, dtype)
+    if wheels is None:
+        axes, h0, h_bound = jnp.zeros((0, 3), dtype), jnp.zeros((0,), dtype), jnp.zeros((0,), dtype)
+        h_ref = jnp.ones_like(w_ref)
+    else:
+        axes, bound, h_bound, h0 = wheels
+        h_bound = inf * jnp.ones_like(h0) if h_bound is None else h_bound
+        # the momentum the body takes at the reference rate, or the wheels' own, whichever is larger
+        h_ref = jnp.maximum(jnp.max(jnp.abs(inertia)) * w_ref, jnp.max(jnp.abs(h0)))
 
-    def data_of(q0_, qf_, w0_, wf_, dur, ur, wr):
+    def data_of(q0_, qf_, w0_, wf_, dur, ur, wr, hr):
         return _Data(
             inertia,
             q0_,
@@ -572,9 +712,13 @@ def _run(cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, bound, rate_bound
             jnp.asarray(cones, dtype),
             jnp.asarray(weights, dtype),
             jnp.full(cfg.intervals, 1 / cfg.intervals, dtype) if fractions is None else jnp.asarray(fractions, dtype),
+            axes,
+            h0,
+            hr,
+            h_bound,
         )
 
-    flat = [jnp.reshape(a, (-1,) + a.shape[len(batch) :]) for a in (q0, qf, w0, wf, duration, u_ref, w_ref)]
+    flat = [jnp.reshape(a, (-1,) + a.shape[len(batch) :]) for a in (q0, qf, w0, wf, duration, u_ref, w_ref, h_ref)]
     data = jax.vmap(data_of)(*flat)
     keys = jax.vmap(lambda k: jax.random.fold_in(jax.random.PRNGKey(seed), k))(jnp.arange(starts))
     out = _solve(data, cfg, tol, max_iter, keys, init)
@@ -641,6 +785,7 @@ def optimal_reorientation(
     seed: int = 0,
     init=None,
     mesh=None,
+    wheels: ReactionWheels | None = None,
 ) -> ConstrainedReorientation:
     """Least ``time_weight T + energy_weight int |u|^2 dt + fuel_weight int sum_i |u_i| dt`` taking
     ``(q0, omega0)`` to ``(qf, omegaf)``: any weighted mix of the three objectives.
@@ -682,6 +827,11 @@ def optimal_reorientation(
         seed: the random draw of the starts after the first.
         init: an earlier (unbatched) result on any grid to warm-start from.
         mesh: interval lengths (any positive scale) for a non-uniform mesh.
+        wheels: a :class:`ReactionWheels`: the body is turned by its reaction wheels (their motor
+            torques are the controls, bounded by ``wheels.torque_limit``; ``wheels.momentum_limit``
+            bounds their momenta at every integration step) instead of a body torque
+            (``torque_bound`` must then be ``None``); ``inertia`` is the spacecraft's without the
+            wheels' axial inertias.
 
     Returns:
         A :class:`ConstrainedReorientation` with leading axes the batch of the boundary states:
@@ -698,17 +848,28 @@ def optimal_reorientation(
             f"got {tuple(weights)}"
         )
     free = duration is None
-    if free and (weights[0] == 0 or torque_bound is None):
+    if wheels is not None and torque_bound is not None:
+        raise ValueError("pass either 'torque_bound' (a body torque) or 'wheels' (whose torque_limit bounds them)")
+    bounded = torque_bound is not None or wheels is not None
+    if free and (weights[0] == 0 or not bounded):
         raise ValueError("a free final time (duration=None) needs time_weight > 0 and a torque_bound")
     if not free and weights[0] != 0:
         raise ValueError(f"argument 'time_weight' must be 0 with a fixed 'duration', got {weights[0]}")
-    if weights[2] > 0 and torque_bound is None:
+    if weights[2] > 0 and not bounded:
         raise ValueError("argument 'torque_bound' is required with fuel_weight > 0 (the l1 optimum is impulsive)")
     inertia, q0, qf, w0, wf, bound, rate_bound, cones = _prepare(
         inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out, keep_in
     )
+    spec = _wheels(wheels, jnp.result_type(q0))
+    if spec is not None:
+        # the body torques the wheels can give, per body axis: sum_i u_max_i |a_i|
+        bound = jnp.sum(spec[1][:, None] * jnp.abs(spec[0]), axis=0)
     T, u_ref, w_ref = _scales(inertia, q0, qf, w0, wf, bound if free else _check_duration(duration), min_time=free)
-    if bound is not None:
+    if spec is not None:
+        u_ref = jnp.broadcast_to(spec[1], jnp.shape(q0)[:-1] + spec[1].shape)
+        if init is not None and getattr(init, "wheel_momentum", None) is None:
+            raise ValueError("argument 'init' must be a result with wheels (wheel_momentum) when wheels are given")
+    elif bound is not None:
         u_ref = jnp.broadcast_to(jnp.asarray(bound), u_ref.shape)
     cfg = _Config(
         intervals,
@@ -720,9 +881,13 @@ def optimal_reorientation(
         fuel=bool(weights[2] > 0),
         energy=bool(weights[1] > 0),
         uniform=fractions is None,
+        wheels=0 if spec is None else int(spec[0].shape[0]),
+        momentum_bounded=spec is not None and spec[2] is not None,
     )
     options = _options(tol, max_iter, throw, starts, seed, init)
-    return _run(cfg, inertia, q0, qf, w0, wf, T, u_ref, w_ref, bound, rate_bound, cones, weights, fractions, options)
+    return _run(
+        cfg, inertia, q0, qf, w0, wf, T, u_ref, w_ref, bound, rate_bound, cones, weights, fractions, options, spec
+    )
 
 
 _SHARED = (
@@ -741,6 +906,7 @@ _SHARED = (
     "seed",
     "init",
     "mesh",
+    "wheels",
 )
 
 
@@ -770,6 +936,7 @@ def minimum_energy_reorientation(
     seed: int = 0,
     init=None,
     mesh=None,
+    wheels: ReactionWheels | None = None,
 ) -> ConstrainedReorientation:
     """Least ``int_0^T |u|^2 dt`` taking ``(q0, omega0)`` to ``(qf, omegaf)`` in the fixed time ``duration``.
 
@@ -840,7 +1007,7 @@ def minimum_fuel_reorientation(
     omega0: Float[ArrayLike, "*#batch 3"] | None = None,
     omegaf: Float[ArrayLike, "*#batch 3"] | None = None,
     *,
-    torque_bound: Float[ArrayLike, "3"],
+    torque_bound: Float[ArrayLike, "3"] | None = None,
     rate_bound: float | None = None,
     keep_out: Sequence = (),
     keep_in: Sequence = (),
@@ -853,6 +1020,7 @@ def minimum_fuel_reorientation(
     seed: int = 0,
     init=None,
     mesh=None,
+    wheels: ReactionWheels | None = None,
 ) -> ConstrainedReorientation:
     """Least fuel ``int_0^T sum_i |u_i| dt`` taking ``(q0, omega0)`` to ``(qf, omegaf)`` in the fixed
     time ``duration``, with ``|u_i| <= torque_bound[i]`` (required: without a bound the l1
@@ -863,7 +1031,7 @@ def minimum_fuel_reorientation(
     (``|u_i| <= sigma_i <= b_i``, cost ``sum h sigma_i``). The optimum is bang-off-bang: torque
     on a bound or zero, except in the intervals that hold a switch. ``cost`` is the fuel.
     ``starts``, ``seed``, ``init`` and ``mesh`` as there."""
-    if torque_bound is None:
+    if torque_bound is None and wheels is None:
         raise ValueError("argument 'torque_bound' is required for minimum fuel (the l1 optimum is impulsive)")
     return optimal_reorientation(
         inertia,
@@ -877,7 +1045,7 @@ def minimum_fuel_reorientation(
 
 def constrained_minimum_time(
     inertia: Float[ArrayLike, "3 3"],
-    torque_bound: Float[ArrayLike, "3"],
+    torque_bound: Float[ArrayLike, "3"] | None,
     q0: Float[ArrayLike, "*#batch 4"],
     qf: Float[ArrayLike, "*#batch 4"],
     omega0: Float[ArrayLike, "*#batch 3"] | None = None,
@@ -895,6 +1063,7 @@ def constrained_minimum_time(
     seed: int = 0,
     init=None,
     mesh=None,
+    wheels: ReactionWheels | None = None,
 ) -> ConstrainedReorientation:
     """Least final time ``T`` taking ``(q0, omega0)`` to ``(qf, omegaf)`` with ``|u_i| <= torque_bound[i]``.
 

@@ -65,6 +65,7 @@ from ..mechanics.inertia import validated
 from ..manifold.lie import minus
 from .optimal_control import (
     ConstrainedReorientation,
+    ReactionWheels,
     check_grid,
     check_resolution,
     check_starts,
@@ -296,7 +297,7 @@ def _solve(x, lam, mu, pr: _Problem, substeps: int, inner: int):
 
 def minimum_time_reorientation(
     inertia: Float[ArrayLike, "3 3"],
-    torque_bound: Float[ArrayLike, "3"],
+    torque_bound: Float[ArrayLike, "3"] | None,
     q0: Float[ArrayLike, "4"],
     qf: Float[ArrayLike, "4"],
     omega0: Float[ArrayLike, "3"] | None = None,
@@ -319,6 +320,7 @@ def minimum_time_reorientation(
     keep_in: Sequence = (),
     mesh=None,
     method: str = "interior_point",
+    wheels: ReactionWheels | None = None,
 ) -> Reorientation | ConstrainedReorientation:
     """Shortest time ``T`` and bounded body torque taking ``(q0, omega0)`` to ``(qf, omegaf)``.
 
@@ -387,6 +389,9 @@ def minimum_time_reorientation(
         keep_in: cones of the same form to stay in.
         mesh: interval lengths for a non-uniform mesh (e.g. :func:`jaxquat.refine_mesh`).
         method: ``"interior_point"`` or ``"single_shooting"``.
+        wheels: a :class:`jaxquat.ReactionWheels` turning the body instead of a body torque
+            (then ``torque_bound=None``; interior point only; see
+            :func:`jaxquat.optimal_reorientation`).
 
     Returns:
         A :class:`jaxquat.ConstrainedReorientation` (interior point) or a
@@ -424,7 +429,10 @@ def minimum_time_reorientation(
             seed=seed,
             init=init,
             mesh=mesh,
+            wheels=wheels,
         )
+    if wheels is not None:
+        raise ValueError("argument 'wheels' needs method='interior_point' (the default)")
     if rate_bound is not None or len(keep_out) > 0 or len(keep_in) > 0:
         raise ValueError(
             "method='single_shooting' handles torque bounds only; rate_bound, keep_out and keep_in need "
