@@ -37,12 +37,13 @@ def _guess(inertia, bound, theta, n):
     """jaxquat's own initial guess (the perturbed eigenaxis bang-bang profile), in physical units,
     so that both solvers start from the same point: ``(T, X (n+1, 7), U (n, 3))``."""
     from jaxquat.control import optimal_control as oc
+    from jaxquat.control import transcription as tr
 
     q0, qf = jnp.asarray([1.0, 0, 0, 0]), jnp.asarray([np.cos(theta / 2), np.sin(theta / 2), 0, 0])
     zero = jnp.zeros(3)
-    T, u_ref, w_ref = oc._scales(jnp.asarray(inertia), q0, qf, zero, zero, jnp.asarray(bound), min_time=True)
-    cfg = oc._Config(n, 4, True, True, False, 0)
-    data = oc._Data(
+    T, u_ref, w_ref = oc.scales(jnp.asarray(inertia), q0, qf, zero, zero, jnp.asarray(bound), min_time=True)
+    cfg = tr.Config(n, 4, True, True, False, 0)
+    data = tr.Data(
         jnp.asarray(inertia),
         q0,
         zero,
@@ -56,8 +57,12 @@ def _guess(inertia, bound, theta, n):
         jnp.zeros((0, 8)),
         jnp.asarray([1.0, 0.0, 0.0]),
         jnp.full(n, 1.0 / n),
+        jnp.zeros((0, 3)),
+        jnp.zeros(0),
+        jnp.asarray(1.0),
+        jnp.zeros(0),
     )
-    X, V = oc._guess(cfg, data)
+    X, V = tr.initial_guess(cfg, data)
     X = np.concatenate([[[1.0, 0, 0, 0, 0, 0, 0]], np.asarray(X)])
     X[:, 4:] *= float(w_ref)
     return float(T), X, np.asarray(V) * np.asarray(u_ref)

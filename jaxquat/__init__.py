@@ -167,8 +167,10 @@ from .control.interior_point import (
     ShootingSolution as ShootingSolution,
     solve_shooting as solve_shooting,
 )
-from .control.optimal_control import (
+from .control.transcription import (
     ConstrainedReorientation as ConstrainedReorientation,
+)
+from .control.optimal_control import (
     ReactionWheels as ReactionWheels,
     minimum_energy_reorientation as minimum_energy_reorientation,
     minimum_fuel_reorientation as minimum_fuel_reorientation,

@@ -1,50 +1,30 @@
-"""Constrained attitude optimal control of a rigid body by direct multiple shooting.
+"""Constrained attitude slews by direct multiple shooting: the public solvers.
 
-Unknowns: the node states ``x_k = (q_k, w_k)`` (``k = 1 .. N``), a body torque held constant on
-each of ``N`` equal intervals, and (minimum time) the final time. Each interval is integrated
-by ``substeps`` RKMK4 steps (:mod:`jaxquat.integration.lie_solvers`, ``|q|`` kept to rounding), and its end
-must meet the next node (the continuity defects). The NLP is solved by the primal-dual
-interior-point method of :mod:`jaxquat.control.interior_point` with exact second derivatives.
-
-Constraints: per-axis torque bounds ``|u_i| <= b_i``; body-rate bounds ``|w_i| <= w_max``;
-keep-out cones (body axis ``a`` stays at least ``alpha`` from the inertial direction ``s``:
-``s . R(q) a <= cos(alpha)``, with ``R(q) a`` the inertial image of the body axis) and keep-in
-cones (within ``alpha``: ``s . R(q) a >= cos(alpha)``, e.g. an antenna kept near the Earth); rate
-and cone constraints hold at every integration step (every substep's end state), not only at the nodes.
-Terminal conditions: ``vec(qf* q_N) = 0`` (so ``q_N = +-qf``) and ``w_N = omegaf``.
-
-Scaling (the method is not scale invariant; both Bilimoria-Wie's unit body and Betts' 5000
-kg m^2 spacecraft are solved with the same settings): torques are divided by the bound
-(or, without one, by the eigenaxis profile's peak torque), rates by the eigenaxis profile's peak
-rate, the time by the eigenaxis reference time.
-
-Initial guess: the eigenaxis rotation from ``q0`` to ``qf`` (bang-bang for minimum time, the
-cubic minimum-energy profile otherwise), with the boundary rates blended in linearly; its
-torque ``I a + w x I w`` is clipped to 90 % of the bound. The nodes need not be continuous: the
-solver closes the defects.
+``optimal_reorientation`` (any weighted mix of the final time, ``int |u|^2 dt`` and the fuel
+``int sum_i |u_i| dt``) and its single-objective cases ``minimum_energy_reorientation``,
+``minimum_fuel_reorientation`` and ``constrained_minimum_time``, for the torqued rigid body or a
+reaction-wheel spacecraft (``ReactionWheels``), with per-axis torque bounds, body-rate bounds,
+wheel momentum bounds and keep-out / keep-in cones. This module validates the arguments, sets
+the scales and the configuration, and checks the grid; the transcription, the initial guess
+and the result are :mod:`jaxquat.control.transcription`'s.
 """
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Sequence
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax import Array
 from jaxtyping import ArrayLike, Float
 
-from .. import _arrays, _checks, _quaternion, _rates
-from ..integration.fixed_step import solve_fixed_steps
+from .. import _checks
+from ..manifold.lie import minus
 from ..mechanics.inertia import validated
-from .interior_point import ShootingProblem, solve_shooting
-from ..manifold.lie import minus, plus
-from ..integration.lie_solvers import RKMK4, BodyRateTerm
+from .transcription import Config, ConstrainedReorientation, Data, Warm, solve
 
 __all__ = [
-    "ConstrainedReorientation",
     "ReactionWheels",
     "optimal_reorientation",
     "refine_mesh",
@@ -52,44 +32,6 @@ __all__ = [
     "minimum_fuel_reorientation",
     "constrained_minimum_time",
 ]
-
-
-class ConstrainedReorientation(NamedTuple):
-    """Result of the multiple-shooting solvers (body frame throughout).
-
-    ``time`` the final time; ``ts`` ``(N * substeps + 1,)`` the integration grid; ``q``, ``omega``
-    the trajectory on it, re-integrated from ``q0`` with the returned torque (not the nodes);
-    ``torque`` ``(len(ts), 3)`` (the last row repeats); ``controls`` ``(N, 3)`` the torque per
-    interval; ``violation`` the largest constraint violation of the NLP (defects, terminal
-    conditions, path constraints); ``cost`` the objective in physical units (the time, ``int |u|^2
-    dt``, the fuel, or their weighted mix);
-    ``costates`` ``(N, 7)`` the multipliers of the continuity conditions, in the NLP's scaled
-    units (the discrete costates of ``(q, w)``); ``switching`` ``(N, 3)`` the discrete switching
-    function ``d(costate . F)/du`` per unit torque; ``kkt_residual``; ``iterations``; ``converged``;
-    ``start_costs`` ``(starts,)`` each start's cost where it converged (``inf`` where not): the result
-    is the start with the least.
-
-    With ``wheels=`` (a reaction-wheel spacecraft) the controls are the ``n`` wheel motor torques:
-    ``torque`` is ``(len(ts), n)``, ``controls`` and ``switching`` ``(N, n)``, ``costates``
-    ``(N, 7 + n)``, and ``wheel_momentum`` ``(len(ts), n)`` the wheels' axial momenta on ``ts``
-    (``None`` for the rigid body).
-    """
-
-    time: Array
-    ts: Array
-    q: Array
-    omega: Array
-    torque: Array
-    controls: Array
-    violation: Array
-    cost: Array
-    costates: Array
-    switching: Array
-    kkt_residual: Array
-    iterations: Array
-    converged: Array
-    start_costs: Array
-    wheel_momentum: Array | None = None
 
 
 class ReactionWheels(NamedTuple):
@@ -110,371 +52,6 @@ class ReactionWheels(NamedTuple):
     torque_limit: ArrayLike
     momentum_limit: ArrayLike | None = None
     momentum0: ArrayLike | None = None
-
-
-_PERTURBATION = 0.2  # scaled torque perturbation of the initial guess
-
-
-class _Data(NamedTuple):
-    inertia: Array
-    q0: Array
-    w0: Array
-    qf: Array
-    wf: Array
-    duration: Array  # the fixed time, or the reference time T_ref (minimum time)
-    u_ref: Array  # (3,) torque scale
-    w_ref: Array  # rate scale
-    bound: Array  # (3,) torque bound (inf: none)
-    rate_bound: Array  # (inf: none)
-    cones: Array  # (n, 8): body axis, inertial direction, cos(half angle), +1 keep-out / -1 keep-in
-    weights: Array  # (3,) of the time, int |u|^2 dt and int |u|_1 dt in the cost
-    fractions: Array  # (N,) interval lengths over the duration (sum 1; used when not uniform)
-    axes: Array  # (n, 3) wheel spin axes ((0, 3): the rigid body, torqued directly)
-    h0: Array  # (n,) initial wheel momenta
-    h_ref: Array  # wheel momentum scale
-    momentum_bound: Array  # (n,) (inf: none)
-
-
-class _Config(NamedTuple):
-    intervals: int
-    substeps: int
-    min_time: bool  # a free final time, in the cost
-    torque_bounded: bool
-    rate_bounded: bool
-    n_cones: int
-    fuel: bool = False  # int |u|_1 dt in the cost: controls (v, sigma) with |v_i| <= sigma_i <= 1
-    energy: bool = False  # int |u|^2 dt in the cost
-    uniform: bool = True  # equal intervals (else data.fractions)
-    wheels: int = 0  # reaction wheels driving the body (0: a body torque, 3 controls)
-    momentum_bounded: bool = False  # |h_i| <= momentum_bound at every integration step
-
-
-def _controls_of(cfg: _Config) -> int:
-    """The number of physical controls: the wheel torques, or the body torque's 3."""
-    return cfg.wheels or 3
-
-
-def _grid(n: int, substeps: int, fractions, dtype) -> Array:
-    """The normalised integration grid ``(n * substeps + 1,)``: ``substeps`` equal steps in each
-    interval, the intervals equal (``fractions=None``) or of lengths ``fractions``."""
-    if fractions is None:
-        return jnp.linspace(0.0, 1.0, n * substeps + 1, dtype=dtype)
-    edges = jnp.concatenate([jnp.zeros(1, dtype), jnp.cumsum(fractions)])
-    inner = edges[:-1, None] + fractions[:, None] * (jnp.arange(substeps, dtype=dtype) / substeps)[None]
-    return jnp.concatenate([inner.ravel(), edges[-1:]])
-
-
-def held_torque_states(inertia, q0, w0, time, u, substeps: int, fractions=None):
-    """Every state ``(q, w)`` of RKMK4 through the piecewise-constant torque ``u`` ``(n, 3)`` over
-    ``[0, time]``, ``substeps`` steps per interval: ``(n * substeps + 1, 4)`` and ``(.., 3)``
-    (the first row the initial state); the intervals are equal, or ``fractions`` ``(n,)`` of
-    ``time``. Shared by the shooting stages (``n = 1``), the returned
-    trajectories and :func:`jaxquat.minimum_time_reorientation`'s rollout.
-
-    One flat grid of ``n * substeps`` steps, each with its interval's torque, not ``n``
-    intervals of ``substeps`` steps: the derivatives of nested scans (the Newton-KKT Hessian of
-    the single-shooting solver among them) compiled slower, that solver's suite fixture 58.5 s
-    against 45.8 s."""
-
-    def field(t, y, u_k):  # the Lie-algebra form: the body rate itself on the quaternion leaf
-        return y[1], _rates.euler_body(inertia, y[1], u_k)
-
-    ts = _grid(u.shape[0], substeps, fractions, w0.dtype) * time
-    return solve_fixed_steps(
-        RKMK4(),
-        BodyRateTerm(field),
-        ts,
-        (q0, w0),
-        substeps=1,
-        interval_args=jnp.repeat(u, substeps, axis=0),
-        checkpoint=False,
-    )
-
-
-def held_wheel_states(inertia, axes, q0, w0, h0, time, u, substeps: int, fractions=None):
-    """:func:`held_torque_states` for the reaction-wheel spacecraft (the gyrostat of
-    :class:`jaxquat.ReactionWheelSpacecraft`): the wheel torques ``u`` ``(n_int, n)`` held per
-    interval, ``J w' = -A u - w x (J w + A h)``, ``h' = u``; returns ``(qs, ws, hs)`` on the flat
-    grid, RKMK4 on the quaternion leaf."""
-
-    def field(t, y, u_k):
-        q, w, h = y
-        total = inertia @ w + h @ axes
-        return w, _arrays.symmetric_solve(inertia, -(u_k @ axes) - jnp.cross(w, total)), u_k
-
-    ts = _grid(u.shape[0], substeps, fractions, w0.dtype) * time
-    return solve_fixed_steps(
-        RKMK4(quaternions=(True, False, False)),
-        BodyRateTerm(field),
-        ts,
-        (q0, w0, h0),
-        substeps=1,
-        interval_args=jnp.repeat(u, substeps, axis=0),
-        checkpoint=False,
-    )
-
-
-def _states(cfg: _Config, data: _Data, x0, time, u, substeps: int, fractions=None):
-    """``(qs, ws, hs)`` from the physical start ``x0 = (q, w, h)`` through the held controls
-    ``u``: the rigid body (``hs`` empty) or the wheels."""
-    q0, w0, h0 = x0
-    if not cfg.wheels:
-        qs, ws = held_torque_states(data.inertia, q0, w0, time, u, substeps, fractions)
-        return qs, ws, jnp.zeros(ws.shape[:-1] + (0,), ws.dtype)
-    return held_wheel_states(data.inertia, data.axes, q0, w0, h0, time, u, substeps, fractions)
-
-
-def _path(cfg: _Config, data: _Data, qs, ws, hs, c, p, k):
-    """Path constraints ``<= 0`` of one interval (controls ``c``), at every substep's end state."""
-    parts = []
-    nu = _controls_of(cfg)
-    v = c[:nu]
-    if cfg.fuel:  # |v_i| <= sigma_i <= 1: sigma is the l1 cost's epigraph variable
-        parts += [v - c[nu:], -v - c[nu:], c[nu:] - 1.0]
-    elif cfg.torque_bounded:
-        parts += [v - 1.0, -v - 1.0]
-    if cfg.rate_bounded:
-        r = ws / data.rate_bound
-        parts += [(r - 1.0).ravel(), (-r - 1.0).ravel()]
-    if cfg.momentum_bounded:
-        r = hs / data.momentum_bound[None]
-        parts += [(r - 1.0).ravel(), (-r - 1.0).ravel()]
-    if cfg.n_cones:
-        qn = qs / jnp.linalg.norm(qs, axis=-1, keepdims=True)
-        axes = jax.vmap(lambda c: jax.vmap(lambda qq: _quaternion.rotate(qq, c[:3]))(qn))(
-            data.cones
-        )  # (n, substeps, 3)
-        cosines = jnp.einsum("csi,ci->cs", axes, data.cones[:, 3:6])
-        parts.append((data.cones[:, 7:8] * (cosines - data.cones[:, 6:7])).ravel())
-    if cfg.min_time:
-        # T >= T_ref / 20, in the first stage only (each copy would add its own barrier term).
-        parts.append(jnp.reshape(jnp.where(k == 0, 0.05 - p[0], -1.0), (1,)))
-    if not parts:
-        return jnp.zeros((0,), qs.dtype)
-    return jnp.concatenate(parts)
-
-
-def _units(data: _Data) -> tuple[Array, Array]:
-    """The cost terms' units ``(T_ref, T_ref sum u_ref_i^2, T_ref sum u_ref_i)`` (time, energy,
-    fuel; ``T_ref`` the fixed time or the eigenaxis reference time) and the cost's unit
-    ``S = sum weight_j unit_j``: the NLP minimises ``cost / S`` (a single objective is divided by its
-    own unit, as the variables are scaled), and ``S`` times its objective is the cost."""
-    units = data.duration * jnp.stack([jnp.ones_like(data.duration), jnp.sum(data.u_ref**2), jnp.sum(data.u_ref)])
-    return units, jnp.sum(data.weights * units)
-
-
-def _problem(cfg: _Config) -> ShootingProblem:
-    def duration(p, data):
-        return data.duration * p[0] if cfg.min_time else data.duration
-
-    nu = _controls_of(cfg)
-
-    def stage(x, c, p, data, k):
-        h = duration(p, data) / cfg.intervals if cfg.uniform else duration(p, data) * data.fractions[k]
-        u = data.u_ref * c[:nu]
-        start = (x[:4], x[4:7] * data.w_ref, x[7:] * data.h_ref)
-        qs, ws, hs = _states(cfg, data, start, h, u[None], cfg.substeps)
-        x_next = jnp.concatenate([qs[-1], ws[-1] / data.w_ref, hs[-1] / data.h_ref])
-        total = _units(data)[1]
-        cost = jnp.zeros((), x.dtype)
-        if cfg.energy:
-            cost = cost + data.weights[1] * h * jnp.sum(u * u) / total
-        if cfg.fuel:
-            cost = cost + data.weights[2] * h * jnp.sum(data.u_ref * c[3:]) / total
-        return x_next, cost, _path(cfg, data, qs[1:], ws[1:], hs[1:], c, p, k)
-
-    def terminal(xN, data):  # the wheel momenta, if any, are free
-        return jnp.concatenate(
-            [_quaternion.multiply(_quaternion.conjugate(data.qf), xN[:4])[1:], xN[4:7] - data.wf / data.w_ref]
-        )
-
-    def objective(p, data):
-        units, total = _units(data)
-        return data.weights[0] * units[0] / total * p[0] if cfg.min_time else jnp.zeros((), p.dtype)
-
-    return ShootingProblem(stage, terminal, objective)
-
-
-_PROBLEMS: dict = {}
-
-
-def _cached_problem(cfg: _Config) -> ShootingProblem:
-    # One ShootingProblem per configuration: jit hashes the static functions by identity.
-    if cfg not in _PROBLEMS:
-        _PROBLEMS[cfg] = _problem(cfg)
-    return _PROBLEMS[cfg]
-
-
-def _guess(cfg: _Config, data: _Data):
-    """The eigenaxis initial guess: nodes ``(N, 7)``, scaled controls ``(N, 3)``."""
-    N = cfg.intervals
-    dtype = data.q0.dtype
-    rotvec = minus(data.qf, data.q0)
-    if cfg.uniform:
-        s = jnp.arange(1, N + 1, dtype=dtype) / N
-        sm = (jnp.arange(N, dtype=dtype) + 0.5) / N
-    else:
-        s = jnp.cumsum(data.fractions)
-        sm = s - data.fractions / 2
-    if cfg.min_time:
-        shape = jnp.where(s < 0.5, 2 * s * s, 1 - 2 * (1 - s) ** 2)
-        rate = jnp.where(sm < 0.5, 4 * sm, 4 * (1 - sm))
-        accel = jnp.where(sm < 0.5, 4.0, -4.0)
-        rate_n = jnp.where(s < 0.5, 4 * s, 4 * (1 - s))
-    else:
-        shape = 3 * s * s - 2 * s**3
-        rate = 6 * sm * (1 - sm)
-        accel = 6 - 12 * sm
-        rate_n = 6 * s * (1 - s)
-    qs = jax.vmap(lambda a: plus(data.q0, a * rotvec))(shape)
-    qs = qs.at[-1].set(data.qf)
-    ws = rate_n[:, None] * rotvec[None] / data.duration + (1 - s)[:, None] * data.w0[None] + s[:, None] * data.wf[None]
-    wm = rate[:, None] * rotvec[None] / data.duration + (1 - sm)[:, None] * data.w0[None] + sm[:, None] * data.wf[None]
-    am = accel[:, None] * rotvec[None] / data.duration**2 + (data.wf - data.w0)[None] / data.duration
-    if cfg.wheels:
-        # Wheel momenta from the body-frame momentum balance without its rotation,
-        # A^T (h - h0) = -J (w - w0), and the wheel torques A^T u = -(J a + w x (J w + A^T h)).
-        spread = jnp.linalg.pinv(data.axes.T)  # (n, 3)
-        hs = data.h0[None] - jax.vmap(lambda w: spread @ (data.inertia @ (w - data.w0)))(ws)
-        hm = data.h0[None] - jax.vmap(lambda w: spread @ (data.inertia @ (w - data.w0)))(wm)
-        u = jax.vmap(lambda w, a, h: -spread @ (data.inertia @ a + jnp.cross(w, data.inertia @ w + h @ data.axes)))(
-            wm, am, hm
-        )
-    else:
-        hs = jnp.zeros((N, 0), dtype)
-        u = jax.vmap(lambda w, a: data.inertia @ a + jnp.cross(w, data.inertia @ w))(wm, am)
-    v = u / data.u_ref[None]
-    # A fixed perturbation: on the eigenaxis profile itself the off-axis derivatives vanish,
-    # and for symmetric bodies it is a saddle point that Newton's method would converge to.
-    v = v + _PERTURBATION * jax.random.normal(jax.random.PRNGKey(0), v.shape, dtype)
-    return jnp.concatenate([qs, ws / data.w_ref, hs / data.h_ref], axis=1), v
-
-
-def _resampled(cfg: _Config, data: _Data, init):
-    """A warm start from a previous result ``init`` (any grid): its torque on each new interval's
-    midpoint, its trajectory interpolated at the new nodes (linear in normalised time, ``q``
-    renormalised), its time. Scaled as the NLP's unknowns."""
-    dtype = data.q0.dtype
-    old = jnp.asarray(init.ts, dtype) / jnp.asarray(init.time, dtype)
-    torque, q, w = (jnp.asarray(a, dtype) for a in (init.torque, init.q, init.omega))
-    edges = _grid(cfg.intervals, 1, None if cfg.uniform else data.fractions, dtype)
-
-    def at(t):  # the grid cell holding t, and t's position in it
-        i = jnp.clip(jnp.searchsorted(old, t, side="right") - 1, 0, old.shape[0] - 2)
-        return i, ((t - old[i]) / (old[i + 1] - old[i]))[:, None]
-
-    u = torque[at((edges[:-1] + edges[1:]) / 2)[0]]
-    i, f = at(edges[1:])
-    qs = (1 - f) * q[i] + f * q[i + 1]
-    ws = (1 - f) * w[i] + f * w[i + 1]
-    hs = (1 - f) * init.h[i] + f * init.h[i + 1] if cfg.wheels else jnp.zeros((ws.shape[0], 0), dtype)
-    X = jnp.concatenate([qs / jnp.linalg.norm(qs, axis=-1, keepdims=True), ws / data.w_ref, hs / data.h_ref], axis=1)
-    p = jnp.reshape(jnp.asarray(init.time, dtype) / data.duration, (1,)) if cfg.min_time else jnp.zeros((0,), dtype)
-    return X, u / data.u_ref[None], p
-
-
-def _controls(cfg: _Config, v, clip):
-    """Scaled controls of a start: inside the torque bound by the margin ``clip`` (the interior
-    point starts strictly inside), and for fuel the epigraph variables ``|v_i| < sigma_i < 1``."""
-    v = jnp.clip(v, -clip, clip) if cfg.torque_bounded else v
-    if cfg.fuel:
-        v = jnp.concatenate([v, jnp.abs(v) + (1 - clip) / 2], axis=1)
-    return v
-
-
-def _start(cfg: _Config, data: _Data, init):
-    """One problem's initial guess ``(X, V, p)``: the eigenaxis profile, or the warm start
-    ``init`` resampled onto this grid."""
-    if init is None:
-        X, V = _guess(cfg, data)
-        return X, V, jnp.ones((1,), X.dtype) if cfg.min_time else jnp.zeros((0,), X.dtype)
-    return _resampled(cfg, data, init)
-
-
-@functools.partial(jax.jit, static_argnames=("cfg", "max_iter"))
-def _solve(data: _Data, cfg: _Config, tol, max_iter: int, keys, init=None):
-    """A batch of problems (``data`` with a leading axis ``B``), every start of each (one per row
-    of ``keys``) solved side by side, then each problem's best start: the least cost among the
-    converged starts (the least KKT residual if none converged). Start 0 is the eigenaxis guess
-    or the warm start ``init`` (one result, shared by the batch); start ``s > 0`` adds
-    ``_PERTURBATION`` times a standard normal draw (``keys[s]``) to its scaled torque.
-
-    The ``B * S`` (problem, start) pairs are one flat ``vmap`` of the interior point, not a
-    ``vmap`` over problems of a ``vmap`` over starts: batching the solver's nested while loops
-    twice took the time to a first Bilimoria-Wie result (10 intervals, 8 starts) from 19.9 s to
-    24.4 s."""
-    problem = _cached_problem(cfg)
-    X, V, p = jax.vmap(lambda d: _start(cfg, d, init))(data)
-    # A warm start begins nearer the torque bound (the margin clip) and with a smaller barrier
-    # parameter: measured 15 iterations against 18 (mu0 = 0.1) for the suite's asymmetric problem
-    # from 10 onto 20 intervals, 9 against 12 for Bilimoria-Wie.
-    clip, mu0 = (0.9, 0.1) if init is None else (0.95, 0.01)
-    B, S = data.q0.shape[0], keys.shape[0]
-
-    def one(d, X, V, p, key, first):
-        kick = _PERTURBATION * jax.random.normal(key, V.shape, V.dtype)
-        U = _controls(cfg, jnp.where(first, V, V + kick), clip)
-        x0 = jnp.concatenate([d.q0, d.w0 / d.w_ref, d.h0 / d.h_ref])
-        return solve_shooting(problem, x0, X, U, p, d, tol=tol, max_iter=max_iter, mu0=mu0)
-
-    def pairs(a):  # (B, ...) -> (B * S, ...): each problem once per start
-        return jnp.repeat(a, S, axis=0)
-
-    first = jnp.tile(jnp.arange(S) == 0, B)
-    flat = _batched(one, *jax.tree.map(pairs, (data, X, V, p)), jnp.tile(keys, (B, 1)), first)
-    sols = jax.tree.map(lambda a: jnp.reshape(a, (B, S) + a.shape[1:]), flat)
-    return _batched(lambda d, s: _best(cfg, problem, d, s), data, sols)
-
-
-def _batched(f, *args):
-    """``jax.vmap(f)(*args)``, or for a leading axis of length 1 ``f`` on the one row (the axis
-    put back): batching the interior point's while loops is most of its trace time, and one
-    problem from one start (the default for minimum energy and fuel) needs none of it."""
-    if jax.tree.leaves(args)[0].shape[0] != 1:
-        return jax.vmap(f)(*args)
-    return jax.tree.map(lambda a: a[None], f(*jax.tree.map(lambda a: a[0], args)))
-
-
-def _best(cfg: _Config, problem: ShootingProblem, data: _Data, sols) -> ConstrainedReorientation:
-    """One problem's result from its starts' solutions ``sols`` (leading axis: the starts)."""
-    costs = _units(data)[1] * sols.objective  # the NLP minimises cost / S: back in physical units
-    start_costs = jnp.where(sols.converged, costs, jnp.inf)
-    best = jnp.where(jnp.any(sols.converged), jnp.argmin(start_costs), jnp.argmin(sols.kkt))
-    sol = jax.tree.map(lambda a: a[best], sols)
-    T = data.duration * sol.p[0] if cfg.min_time else data.duration
-    nu = _controls_of(cfg)
-    u = sol.u[:, :nu] * data.u_ref[None]
-    # The trajectory, re-integrated from q0 with the returned torque on one flat grid.
-    N, m = cfg.intervals, cfg.substeps
-    fractions = None if cfg.uniform else data.fractions
-    ts = _grid(N, m, fractions, data.q0.dtype) * T
-    qs, ws, hs = _states(cfg, data, (data.q0, data.w0, data.h0), T, u, m, fractions)
-
-    def lam_dot_f(v, c, x, y, k):  # costate . F as a function of the scaled torque v
-        return y @ problem.stage(x, c.at[:nu].set(v), sol.p, data, k)[0]
-
-    # Per unit torque: d/du = d/dv / u_ref.
-    switching = (
-        jax.vmap(jax.grad(lam_dot_f))(sol.u[:, :nu], sol.u, sol.x[:-1], sol.costates, jnp.arange(N)) / data.u_ref[None]
-    )
-    torque = jnp.concatenate([jnp.repeat(u, m, axis=0), u[-1:]])
-    return ConstrainedReorientation(
-        T,
-        ts,
-        qs,
-        ws,
-        torque,
-        u,
-        sol.violation,
-        costs[best],
-        sol.costates,
-        switching,
-        sol.kkt,
-        sol.iterations,
-        sol.converged,
-        start_costs,
-        hs if cfg.wheels else None,
-    )
 
 
 def _cones(keep_out, keep_in, dtype) -> np.ndarray:
@@ -559,18 +136,9 @@ def _options(tol, max_iter, throw, starts, seed, init) -> tuple:
                 f"argument 'init' must be a single (unbatched) result, got time shaped {np.shape(init.time)}"
             )
         h = getattr(init, "wheel_momentum", None)
-        init = _Warm(*(jnp.asarray(a) for a in (init.time, init.ts, init.q, init.omega, init.torque)))
+        init = Warm(*(jnp.asarray(a) for a in (init.time, init.ts, init.q, init.omega, init.torque)))
         init = init._replace(h=None if h is None else jnp.asarray(h))
     return tol, max_iter, throw, starts, int(seed), init
-
-
-class _Warm(NamedTuple):
-    time: Array
-    ts: Array
-    q: Array
-    omega: Array
-    torque: Array
-    h: Array | None = None  # the wheel momenta of a reaction-wheel result
 
 
 _MAX_STEP_ANGLE = 0.5  # rad the body may turn in one RKMK4 step of the reference profile
@@ -698,7 +266,7 @@ def _run(
         h_ref = jnp.maximum(jnp.max(jnp.abs(inertia)) * w_ref, jnp.max(jnp.abs(h0)))
 
     def data_of(q0_, qf_, w0_, wf_, dur, ur, wr, hr):
-        return _Data(
+        return Data(
             inertia,
             q0_,
             w0_,
@@ -721,7 +289,7 @@ def _run(
     flat = [jnp.reshape(a, (-1,) + a.shape[len(batch) :]) for a in (q0, qf, w0, wf, duration, u_ref, w_ref, h_ref)]
     data = jax.vmap(data_of)(*flat)
     keys = jax.vmap(lambda k: jax.random.fold_in(jax.random.PRNGKey(seed), k))(jnp.arange(starts))
-    out = _solve(data, cfg, tol, max_iter, keys, init)
+    out = solve(data, cfg, tol, max_iter, keys, init)
     out = jax.tree.map(lambda a: jnp.reshape(a, batch + a.shape[1:]), out)
     if throw and not _checks.is_traced(out.violation):
         bad = ~np.asarray(out.converged)
@@ -736,7 +304,7 @@ def _run(
     return out
 
 
-def _scales(inertia, q0, qf, w0, wf, duration_or_bound, min_time: bool):
+def scales(inertia, q0, qf, w0, wf, duration_or_bound, min_time: bool):
     """Per-problem time, torque and rate scales from the eigenaxis profile."""
     theta = jnp.linalg.norm(minus(qf, q0), axis=-1)
     axis = minus(qf, q0) / jnp.maximum(theta, 1e-12)[..., None]
@@ -864,14 +432,14 @@ def optimal_reorientation(
     if spec is not None:
         # the body torques the wheels can give, per body axis: sum_i u_max_i |a_i|
         bound = jnp.sum(spec[1][:, None] * jnp.abs(spec[0]), axis=0)
-    T, u_ref, w_ref = _scales(inertia, q0, qf, w0, wf, bound if free else _check_duration(duration), min_time=free)
+    T, u_ref, w_ref = scales(inertia, q0, qf, w0, wf, bound if free else _check_duration(duration), min_time=free)
     if spec is not None:
         u_ref = jnp.broadcast_to(spec[1], jnp.shape(q0)[:-1] + spec[1].shape)
         if init is not None and getattr(init, "wheel_momentum", None) is None:
             raise ValueError("argument 'init' must be a result with wheels (wheel_momentum) when wheels are given")
     elif bound is not None:
         u_ref = jnp.broadcast_to(jnp.asarray(bound), u_ref.shape)
-    cfg = _Config(
+    cfg = Config(
         intervals,
         substeps,
         free,

@@ -64,14 +64,13 @@ from .. import _checks, _trig
 from ..mechanics.inertia import validated
 from ..manifold.lie import minus
 from .optimal_control import (
-    ConstrainedReorientation,
     ReactionWheels,
     check_grid,
     check_resolution,
     check_starts,
     constrained_minimum_time,
-    held_torque_states,
 )
+from .transcription import ConstrainedReorientation, held_torque_states
 
 __all__ = ["Reorientation", "minimum_time_reorientation"]
 
@@ -113,7 +112,7 @@ class Reorientation(NamedTuple):
 
 
 def _rollout(inertia, q0, w0, time, u, substeps: int):
-    """The final state of :func:`jaxquat.control.optimal_control.held_torque_states` (RKMK4 through the
+    """The final state of :func:`jaxquat.control.transcription.held_torque_states` (RKMK4 through the
     piecewise-constant torque ``u`` ``(n, 3)`` over ``[0, time]``)."""
     qs, ws = held_torque_states(inertia, q0, w0, time, u, substeps)
     return qs[-1], ws[-1]
