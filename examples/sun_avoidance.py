@@ -55,6 +55,26 @@ def resimulate(controls, time, substeps):
     )
 
 
+def plot_sky(ax, boresight, label):
+    """The boresight path in azimuth and elevation, the eigenaxis path (the equator from 0 to 90
+    degrees) and the Sun keep-out cone, filled (shared with examples/wheel_slew.py)."""
+    az, el = np.degrees(np.arctan2(boresight[:, 1], boresight[:, 0])), np.degrees(np.arcsin(boresight[:, 2]))
+    ax.plot(az, el, label=label)
+    ax.plot([0, 90], [0, 0], "k:", label="eigenaxis path")
+    # The cone boundary: directions at HALF from the Sun.
+    e1 = np.array([0.0, 0.0, 1.0])
+    e2 = np.cross(SUN, e1)
+    phi = np.linspace(0, 2 * np.pi, 200)
+    ring = np.cos(HALF) * SUN[None] + np.sin(HALF) * (np.cos(phi)[:, None] * e1[None] + np.sin(phi)[:, None] * e2[None])
+    ax.fill(
+        np.degrees(np.arctan2(ring[:, 1], ring[:, 0])),
+        np.degrees(np.arcsin(ring[:, 2])),
+        color="orange",
+        alpha=0.4,
+        label=f"Sun keep-out ({np.degrees(HALF):.0f} deg)",
+    )
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--intervals", type=int, default=12)
@@ -88,21 +108,7 @@ def main():
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(1, 3, figsize=(15, 4.2))
-    az, el = np.degrees(np.arctan2(boresight[:, 1], boresight[:, 0])), np.degrees(np.arcsin(boresight[:, 2]))
-    ax[0].plot(az, el, label="boresight (optimal)")
-    ax[0].plot([0, 90], [0, 0], "k:", label="eigenaxis path")
-    # The cone boundary: directions at HALF from the Sun.
-    e1 = np.array([0.0, 0.0, 1.0])
-    e2 = np.cross(SUN, e1)
-    phi = np.linspace(0, 2 * np.pi, 200)
-    ring = np.cos(HALF) * SUN[None] + np.sin(HALF) * (np.cos(phi)[:, None] * e1[None] + np.sin(phi)[:, None] * e2[None])
-    ax[0].fill(
-        np.degrees(np.arctan2(ring[:, 1], ring[:, 0])),
-        np.degrees(np.arcsin(ring[:, 2])),
-        color="orange",
-        alpha=0.4,
-        label="Sun keep-out (20 deg)",
-    )
+    plot_sky(ax[0], boresight, "boresight (optimal)")
     ax[0].set(xlabel="azimuth (deg)", ylabel="elevation (deg)", title="boresight on the sky", aspect="equal")
     ax[0].legend(fontsize=8, loc="lower left")
     t = np.asarray(r.ts)

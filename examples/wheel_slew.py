@@ -37,14 +37,10 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxquat as jq  # noqa: E402
+from sun_avoidance import BORESIGHT, HALF, Q0, QF, SUN, plot_sky  # noqa: E402  (the same geometry)
 
 INERTIA = np.diag([1.2, 1.0, 0.8])  # kg m^2, the spacecraft without the wheels' axial inertias
 AXES = np.eye(3)  # the wheels' spin axes (rows), one per body axis
-Q0 = np.array([1.0, 0.0, 0.0, 0.0])
-QF = np.array([np.cos(np.pi / 4), 0.0, 0.0, np.sin(np.pi / 4)])  # 90 degrees about z
-BORESIGHT = np.array([1.0, 0.0, 0.0])
-SUN = np.array([1.0, 1.0, 0.0]) / np.sqrt(2)
-HALF = np.deg2rad(20.0)
 WHEEL_TORQUE, WHEEL_MOMENTUM, RATE = 0.1, 0.12, 0.15  # N m, N m s, rad/s
 WHEELS = jq.ReactionWheels(AXES, WHEEL_TORQUE, momentum_limit=WHEEL_MOMENTUM)
 CONSTRAINTS = dict(rate_bound=RATE, keep_out=[(BORESIGHT, SUN, HALF)], wheels=WHEELS)
@@ -103,22 +99,7 @@ def main():
 
     fig, ax = plt.subplots(2, 4, figsize=(18, 7.5))
     for row, (name, r, ys, boresight) in enumerate(paths):
-        az, el = np.degrees(np.arctan2(boresight[:, 1], boresight[:, 0])), np.degrees(np.arcsin(boresight[:, 2]))
-        ax[row, 0].plot(az, el, label=f"boresight ({name})")
-        ax[row, 0].plot([0, 90], [0, 0], "k:", label="eigenaxis path")
-        e1 = np.array([0.0, 0.0, 1.0])
-        e2 = np.cross(SUN, e1)
-        phi = np.linspace(0, 2 * np.pi, 200)
-        ring = np.cos(HALF) * SUN[None] + np.sin(HALF) * (
-            np.cos(phi)[:, None] * e1[None] + np.sin(phi)[:, None] * e2[None]
-        )
-        ax[row, 0].fill(
-            np.degrees(np.arctan2(ring[:, 1], ring[:, 0])),
-            np.degrees(np.arcsin(ring[:, 2])),
-            color="orange",
-            alpha=0.4,
-            label="Sun keep-out (20 deg)",
-        )
+        plot_sky(ax[row, 0], boresight, f"boresight ({name})")
         ax[row, 0].set(xlabel="azimuth (deg)", ylabel="elevation (deg)", title=name, aspect="equal")
         ax[row, 0].legend(fontsize=7, loc="lower left")
         t = np.asarray(r.ts)
