@@ -30,7 +30,7 @@ def t_handle():
     # Point masses: shaft 2 x 0.5 along x, handle 2 x 0.2 at +-0.4 along y (arbitrary units).
     pts = jnp.asarray([[0.0, 0.0, 0.0], [0.6, 0.0, 0.0], [0.6, 0.4, 0.0], [0.6, -0.4, 0.0]])
     masses = jnp.asarray([0.5, 0.5, 0.2, 0.2])
-    pts = pts - (masses[:, None] * pts).sum(0) / masses.sum()
+    pts = pts - ((masses[:, None] * pts).sum(0) / masses.sum())[None]
     moments, _ = jq.principal_axes(jq.inertia_from_points(pts, masses))
     return moments
 

@@ -104,7 +104,7 @@ def main(argv=None):
     ys, steps = slew(ts)
     ref = reference(ts)
     momentum = jax.vmap(lambda q, w, h: MODEL.momentum({"q": q, "w": w, "h": h}))(ys["q"], ys["w"], ys["h"])
-    drift = float(jnp.max(jnp.linalg.norm(momentum - momentum[0], axis=-1)) / jnp.linalg.norm(momentum[0]))
+    drift = float(jnp.max(jnp.linalg.norm(momentum - momentum[:1], axis=-1)) / jnp.linalg.norm(momentum[0]))
     q_ref = jnp.asarray(ref["q"] / np.linalg.norm(ref["q"], axis=-1, keepdims=True))
     att = float(jnp.max(jq.angle_between(ys["q"], q_ref)))
     wheel = float(np.max(np.abs(np.asarray(ys["h"]) - ref["h"])))
