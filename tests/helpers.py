@@ -184,7 +184,6 @@ def run_example_in_process(script: str, *args: str) -> str:
     import runpy
     import sys
 
-
     root = pathlib.Path(__file__).parent.parent
     path = root / script
     argv, sys.argv = sys.argv, [str(path), *args]
