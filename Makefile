@@ -4,7 +4,6 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 BENCH_STAMP := $(VENV)/.installed-bench
-DOCS_STAMP  := $(VENV)/.installed-docs
 
 .PHONY: demo test test64 test32 lint docs bench clean
 
@@ -19,9 +18,11 @@ $(PY):
 
 # --no-compile: Python compiles the modules it imports on first import (and caches them: see
 # unexport above); precompiling every installed file took 27 s of the 40 s install on a 2-core CPU.
+# The docs extra (mkdocs, pure Python) comes with the first install: one resolver run instead of
+# a second one for `make docs`.
 $(STAMP): $(PY) pyproject.toml
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet --no-compile -e ".[test]"
+	$(PY) -m pip install --quiet --no-compile -e ".[test,docs]"
 	touch $(STAMP)
 
 # The peers the benchmarks compare against (MuJoCo MJX among them): only `make bench` needs them.
@@ -64,11 +65,7 @@ lint: $(STAMP)
 # The site (docs/ and the API reference generated from the docstrings by mkdocstrings) into
 # site/; --strict (mkdocs.yml) turns every warning, a docstring griffe cannot parse or a broken
 # link among them, into an error. .ci/run builds it after the lint.
-$(DOCS_STAMP): $(STAMP)
-	$(PY) -m pip install --quiet --no-compile -e ".[test,docs]"
-	touch $(DOCS_STAMP)
-
-docs: $(DOCS_STAMP)
+docs: $(STAMP)
 	$(VENV)/bin/mkdocs build --strict --quiet
 
 # Rewrites the generated sections of docs/benchmarks.md (the text around them stays).
