@@ -52,7 +52,6 @@ def _guess(inertia, bound, theta, n):
         T,
         u_ref,
         w_ref,
-        jnp.asarray(bound),
         jnp.asarray(jnp.inf),
         jnp.zeros((0, 8)),
         jnp.asarray([1.0, 0.0, 0.0]),

@@ -442,6 +442,35 @@ def test_minimum_energy_bad_input_raises_naming_the_argument(kwargs, match):
         jq.minimum_energy_reorientation(np.eye(3), Q0, QF, 2.0, **kwargs)
 
 
+@pytest.mark.parametrize(
+    "wheels, kwargs, match",
+    [
+        (jq.ReactionWheels(np.eye(3), 1.0), dict(torque_bound=np.ones(3)), "either 'torque_bound'"),
+        (jq.ReactionWheels(np.eye(3)[:, :2], 1.0), {}, r"wheels.axes must be the spin axes shaped \(n, 3\)"),
+        (jq.ReactionWheels(np.eye(3) * [1.0, 1.0, 0.0], 1.0), {}, "finite nonzero rows"),
+        (jq.ReactionWheels(np.array([[1.0, 0, 0], [0, 1, 0], [1, 1, 0]]), 1.0), {}, "span the three body axes"),
+        (jq.ReactionWheels(np.eye(3), [1.0, 1.0]), {}, r"wheels.torque_limit .* shaped \(3,\)"),
+        (jq.ReactionWheels(np.eye(3), -1.0), {}, "wheels.torque_limit must be positive"),
+        (jq.ReactionWheels(np.eye(3), 1.0, momentum_limit=0.0), {}, "wheels.momentum_limit must be positive"),
+        (jq.ReactionWheels(np.eye(3), 1.0, momentum0=np.ones(2)), {}, r"wheels.momentum0 .* shaped \(3,\)"),
+        (jq.ReactionWheels(np.eye(3), 1.0, 0.5, momentum0=np.ones(3)), {}, "exceeds wheels.momentum_limit"),
+        (jq.ReactionWheels(np.eye(3), 1.0), dict(init=_batched_result()._replace(time=np.zeros(()))), "wheel_momentum"),
+    ],
+)
+def test_bad_wheels_raise_naming_the_field(wheels, kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        jq.minimum_energy_reorientation(np.eye(3), Q0, QF, 2.0, wheels=wheels, **kwargs)
+
+
+def test_wheels_need_a_reaction_wheels_and_the_interior_point():
+    with pytest.raises(TypeError, match="'wheels' must be a jaxquat.ReactionWheels"):
+        jq.minimum_energy_reorientation(np.eye(3), Q0, QF, 2.0, wheels=(np.eye(3), 1.0))
+    with pytest.raises(ValueError, match="'wheels' needs method='interior_point'"):
+        jq.minimum_time_reorientation(
+            np.eye(3), None, Q0, QF, wheels=jq.ReactionWheels(np.eye(3), 1.0), method="single_shooting"
+        )
+
+
 def test_refine_mesh_of_a_batched_result_raises():
     with pytest.raises(ValueError, match="'result' must be a single"):
         jq.refine_mesh(_batched_result())

@@ -231,7 +231,8 @@ def _wheels(wheels, dtype) -> tuple | None:
     n = axes.shape[0]
 
     def limit(x, name):
-        x = np.broadcast_to(np.asarray(x, np.float64), (n,)) if np.ndim(x) in (0, 1) else np.asarray(x)
+        x = np.asarray(x, np.float64)
+        x = np.full(n, x) if x.ndim == 0 else x
         if x.shape != (n,) or not np.all(x > 0) or not np.all(np.isfinite(x)):
             raise ValueError(f"wheels.{name} must be positive and finite, a scalar or shaped ({n},), got {x}")
         return jnp.asarray(x, dtype)
@@ -245,9 +246,7 @@ def _wheels(wheels, dtype) -> tuple | None:
     return jnp.asarray(axes, dtype), limit(wheels.torque_limit, "torque_limit"), h_limit, jnp.asarray(h0, dtype)
 
 
-def _run(
-    cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, bound, rate_bound, cones, weights, fractions, options, wheels
-):
+def _run(cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, rate_bound, cones, weights, fractions, options, wheels):
     """Solve, and raise when a problem did not converge (``throw``). ``wheels`` the validated
     ``(axes, torque_limit, momentum_limit or None, momentum0)`` or ``None``."""
     tol, max_iter, throw, starts, seed, init = options
@@ -260,7 +259,7 @@ def _run(
         axes, h0, h_bound = jnp.zeros((0, 3), dtype), jnp.zeros((0,), dtype), jnp.zeros((0,), dtype)
         h_ref = jnp.ones_like(w_ref)
     else:
-        axes, bound, h_bound, h0 = wheels
+        axes, _, h_bound, h0 = wheels
         h_bound = inf * jnp.ones_like(h0) if h_bound is None else h_bound
         # the momentum the body takes at the reference rate, or the wheels' own, whichever is larger
         h_ref = jnp.maximum(jnp.max(jnp.abs(inertia)) * w_ref, jnp.max(jnp.abs(h0)))
@@ -275,7 +274,6 @@ def _run(
             dur,
             ur,
             wr,
-            inf * jnp.ones(3, dtype) if bound is None else bound,
             inf if rate_bound is None else jnp.asarray(rate_bound, dtype),
             jnp.asarray(cones, dtype),
             jnp.asarray(weights, dtype),
@@ -453,9 +451,7 @@ def optimal_reorientation(
         momentum_bounded=spec is not None and spec[2] is not None,
     )
     options = _options(tol, max_iter, throw, starts, seed, init)
-    return _run(
-        cfg, inertia, q0, qf, w0, wf, T, u_ref, w_ref, bound, rate_bound, cones, weights, fractions, options, spec
-    )
+    return _run(cfg, inertia, q0, qf, w0, wf, T, u_ref, w_ref, rate_bound, cones, weights, fractions, options, spec)
 
 
 _SHARED = (

@@ -95,7 +95,6 @@ class Data(NamedTuple):
     duration: Array  # the fixed time, or the reference time T_ref (minimum time)
     u_ref: Array  # (3,) torque scale
     w_ref: Array  # rate scale
-    bound: Array  # (3,) torque bound (inf: none)
     rate_bound: Array  # (inf: none)
     cones: Array  # (n, 8): body axis, inertial direction, cos(half angle), +1 keep-out / -1 keep-in
     weights: Array  # (3,) of the time, int |u|^2 dt and int |u|_1 dt in the cost
@@ -150,16 +149,7 @@ def held_torque_states(inertia, q0, w0, time, u, substeps: int, fractions=None):
     def field(t, y, u_k):  # the Lie-algebra form: the body rate itself on the quaternion leaf
         return y[1], _rates.euler_body(inertia, y[1], u_k)
 
-    ts = _grid(u.shape[0], substeps, fractions, w0.dtype) * time
-    return solve_fixed_steps(
-        RKMK4(),
-        BodyRateTerm(field),
-        ts,
-        (q0, w0),
-        substeps=1,
-        interval_args=jnp.repeat(u, substeps, axis=0),
-        checkpoint=False,
-    )
+    return _held(RKMK4(), field, (q0, w0), time, u, substeps, fractions)
 
 
 def held_wheel_states(inertia, axes, q0, w0, h0, time, u, substeps: int, fractions=None):
@@ -173,12 +163,18 @@ def held_wheel_states(inertia, axes, q0, w0, h0, time, u, substeps: int, fractio
         total = inertia @ w + h @ axes
         return w, _arrays.symmetric_solve(inertia, -(u_k @ axes) - jnp.cross(w, total)), u_k
 
-    ts = _grid(u.shape[0], substeps, fractions, w0.dtype) * time
+    return _held(RKMK4(quaternions=(True, False, False)), field, (q0, w0, h0), time, u, substeps, fractions)
+
+
+def _held(solver, field, y0, time, u, substeps: int, fractions):
+    """``solver`` through the Lie-algebra vector field ``field(t, y, u_k)`` from ``y0`` over
+    ``[0, time]`` on one flat grid, each step with its interval's control ``u_k``."""
+    ts = _grid(u.shape[0], substeps, fractions, y0[1].dtype) * time
     return solve_fixed_steps(
-        RKMK4(quaternions=(True, False, False)),
+        solver,
         BodyRateTerm(field),
         ts,
-        (q0, w0, h0),
+        y0,
         substeps=1,
         interval_args=jnp.repeat(u, substeps, axis=0),
         checkpoint=False,
@@ -251,7 +247,7 @@ def _problem(cfg: Config) -> ShootingProblem:
         if cfg.energy:
             cost = cost + data.weights[1] * h * jnp.sum(u * u) / total
         if cfg.fuel:
-            cost = cost + data.weights[2] * h * jnp.sum(data.u_ref * c[3:]) / total
+            cost = cost + data.weights[2] * h * jnp.sum(data.u_ref * c[nu:]) / total
         return x_next, cost, _path(cfg, data, qs[1:], ws[1:], hs[1:], c, p, k)
 
     def terminal(xN, data):  # the wheel momenta, if any, are free
@@ -306,8 +302,11 @@ def initial_guess(cfg: Config, data: Data):
         # Wheel momenta from the body-frame momentum balance without its rotation,
         # A^T (h - h0) = -J (w - w0), and the wheel torques A^T u = -(J a + w x (J w + A^T h)).
         spread = jnp.linalg.pinv(data.axes.T)  # (n, 3)
-        hs = data.h0[None] - jax.vmap(lambda w: spread @ (data.inertia @ (w - data.w0)))(ws)
-        hm = data.h0[None] - jax.vmap(lambda w: spread @ (data.inertia @ (w - data.w0)))(wm)
+
+        def momenta(w):  # (k, 3) body rates -> (k, n) wheel momenta
+            return data.h0[None] - jax.vmap(lambda wk: spread @ (data.inertia @ (wk - data.w0)))(w)
+
+        hs, hm = momenta(ws), momenta(wm)
         u = jax.vmap(lambda w, a, h: -spread @ (data.inertia @ a + jnp.cross(w, data.inertia @ w + h @ data.axes)))(
             wm, am, hm
         )
