@@ -688,41 +688,52 @@ def test_annotations_hold_for_nested_and_broadcast_batches(name, typechecked):
         fn(args[0][:4], *[a.reshape((3, 4) + a.shape[1:]) for a in args[1:]])
 
 
-def _more_calls():
-    """Calls of the public functions outside the registry, in broadcast batch shapes
-    ((3, 1) against (4,) where a function takes two batched arguments)."""
+@functools.cache
+def _inputs():
+    """Arguments of the calls below, in broadcast batch shapes ((3, 1) against (4,) where a
+    function takes two batched arguments); made once, in the first test that needs them (so
+    the filter state comes from the checked ``mekf_init``), not at collection."""
+    from types import SimpleNamespace
+
     rng = np.random.default_rng(7)
     q = jnp.asarray(_unit(rng.normal(size=(3, 1, 4))), DTYPE)
     w = jnp.asarray(rng.normal(size=(4, 3)), DTYPE)
-    moments = jnp.asarray([1.0, 2.0, 3.0], DTYPE)
-    inertia = jnp.asarray(random_inertias(3, 4), DTYPE)
-    m = jnp.asarray(rng.uniform(0.1, 0.9, (3, 1)), DTYPE)
-    u = jnp.asarray(rng.uniform(-2, 2, (4,)), DTYPE)
-    x = jnp.asarray(rng.uniform(0.5, 2, (3, 1)), DTYPE)
-    state = jq.mekf_init(q, w, jnp.eye(6, dtype=DTYPE) * 1e-2)
-    vb = jnp.asarray(rng.normal(size=(4, 2, 3)), DTYPE)
-    return {
-        "ellipj": lambda: jq.ellipj(u, m),
-        "ellipk": lambda: jq.ellipk(m),
-        "elliprf": lambda: jq.elliprf(x, u**2 + 0.5, x + 1),
-        "elliprj": lambda: jq.elliprj(x, u**2 + 0.5, x + 1, x + 2),
-        "euler_poinsot": lambda: jq.euler_poinsot(q, w, moments, u),
-        "polhode_period": lambda: jq.polhode_period(w, moments),
-        "invariants": lambda: jq.invariants(q, w, inertia),
-        "is_valid_inertia": lambda: jq.is_valid_inertia(inertia),
-        "principal_axes": lambda: jq.principal_axes(inertia),
-        "squad": lambda: jq.squad(q[:, 0], u * 0.2 + 1.0),
-        "identity": lambda: jq.identity((3, 4), DTYPE),
-        "random": lambda: jq.random(jax.random.PRNGKey(0), (3, 4), DTYPE),
-        "mekf_predict": lambda: jq.mekf_predict(state, w, 0.1, gyro_noise=1e-3, bias_noise=1e-4),
-        "mekf_update": lambda: jq.mekf_update(state, vb, vb, vector_noise=1e-2),
-        "mekf_update_quaternion": lambda: jq.mekf_update_quaternion(state, q, noise=1e-2),
-        "ukf_predict": lambda: jq.ukf_predict(state, w, 0.1, gyro_noise=1e-3, bias_noise=1e-4),
-        "ukf_update": lambda: jq.ukf_update(state, vb, vb, vector_noise=1e-2),
-        "ukf_update_quaternion": lambda: jq.ukf_update_quaternion(state, q, noise=1e-2),
-    }
+    return SimpleNamespace(
+        q=q,
+        w=w,
+        moments=jnp.asarray([1.0, 2.0, 3.0], DTYPE),
+        inertia=jnp.asarray(random_inertias(3, 4), DTYPE),
+        m=jnp.asarray(rng.uniform(0.1, 0.9, (3, 1)), DTYPE),
+        u=jnp.asarray(rng.uniform(-2, 2, (4,)), DTYPE),
+        x=jnp.asarray(rng.uniform(0.5, 2, (3, 1)), DTYPE),
+        state=jq.mekf_init(q, w, jnp.eye(6, dtype=DTYPE) * 1e-2),
+        vb=jnp.asarray(rng.normal(size=(4, 2, 3)), DTYPE),
+    )
 
 
-@pytest.mark.parametrize("name", sorted(_more_calls()))
+# Calls of the public functions outside the registry, on _inputs().
+MORE_CALLS = {
+    "ellipj": lambda a: jq.ellipj(a.u, a.m),
+    "ellipk": lambda a: jq.ellipk(a.m),
+    "elliprf": lambda a: jq.elliprf(a.x, a.u**2 + 0.5, a.x + 1),
+    "elliprj": lambda a: jq.elliprj(a.x, a.u**2 + 0.5, a.x + 1, a.x + 2),
+    "euler_poinsot": lambda a: jq.euler_poinsot(a.q, a.w, a.moments, a.u),
+    "polhode_period": lambda a: jq.polhode_period(a.w, a.moments),
+    "invariants": lambda a: jq.invariants(a.q, a.w, a.inertia),
+    "is_valid_inertia": lambda a: jq.is_valid_inertia(a.inertia),
+    "principal_axes": lambda a: jq.principal_axes(a.inertia),
+    "squad": lambda a: jq.squad(a.q[:, 0], a.u * 0.2 + 1.0),
+    "identity": lambda a: jq.identity((3, 4), DTYPE),
+    "random": lambda a: jq.random(jax.random.PRNGKey(0), (3, 4), DTYPE),
+    "mekf_predict": lambda a: jq.mekf_predict(a.state, a.w, 0.1, gyro_noise=1e-3, bias_noise=1e-4),
+    "mekf_update": lambda a: jq.mekf_update(a.state, a.vb, a.vb, vector_noise=1e-2),
+    "mekf_update_quaternion": lambda a: jq.mekf_update_quaternion(a.state, a.q, noise=1e-2),
+    "ukf_predict": lambda a: jq.ukf_predict(a.state, a.w, 0.1, gyro_noise=1e-3, bias_noise=1e-4),
+    "ukf_update": lambda a: jq.ukf_update(a.state, a.vb, a.vb, vector_noise=1e-2),
+    "ukf_update_quaternion": lambda a: jq.ukf_update_quaternion(a.state, a.q, noise=1e-2),
+}
+
+
+@pytest.mark.parametrize("name", sorted(MORE_CALLS))
 def test_annotations_hold_beyond_the_registry(name, typechecked):
-    _more_calls()[name]()
+    MORE_CALLS[name](_inputs())
