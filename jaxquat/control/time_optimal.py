@@ -15,7 +15,7 @@ Transcription (direct, single shooting): time runs on ``s in [0, 1]`` with
 ``T = T_ref exp(sigma)``. Each piece is integrated with ``substeps`` RKMK4 steps
 (:mod:`jaxquat.integration.lie_solvers`; ``|q| = 1`` to rounding). The six terminal conditions
 ``c = (minus(q(T), qf), w(T) - wf)`` enter an augmented Lagrangian
-``T + lambda . c + mu/2 |c|^2``, minimised over ``(sigma, p)`` by optax L-BFGS; the
+``T + lambda . c + mu/2 |c|^2``, minimised over ``(sigma, p)`` by optimistix's L-BFGS; the
 multipliers are updated after each inner solve and ``mu`` grows by 10 when ``|c|``
 has not fallen by 4. After each inner solve a copy of the iterate is projected onto
 ``c = 0`` by a few Gauss-Newton minimum-norm steps (``J`` by forward mode, 6 rows),
@@ -33,9 +33,11 @@ longer depends on its path: the suite's 180-degree problem gives the same time t
 under XLA's AVX-512, AVX2 and SSE4.2 code. Where the discrete problem has several local
 optima close together (the suite's asymmetric 10-interval problem has KKT points at
 1.918171, 1.918318 and 1.918498), which one a start reaches can still depend on the ISA:
-FAST settings (10 intervals, 4 starts) gave 1.9181217122804963 under AVX-512 and
-1.9186738802162087 under AVX2. Hence the interior-point default, whose starts all converge by
-Newton steps (the same problem: 1.918121717830074 under every ISA and thread count tried).
+FAST settings (10 intervals, 4 starts) give 1.9182356290060518 under AVX-512 and
+1.9181217122804963 under AVX2 and SSE4.2 (``benchmarks/reproducibility.py``; the earlier
+optax L-BFGS gave 1.9181217 under AVX-512 and 1.9186739 under AVX2). Hence the interior-point
+default, whose starts all converge by Newton steps (the same problem: 1.918121717830074 under
+every ISA and thread count tried).
 
 Starts: start 0 is the eigenaxis rest-to-rest bang-bang profile (the rotation
 about the fixed axis of ``q0* qf``), scaled to 80 % of the bound and perturbed, since
@@ -54,8 +56,9 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import equinox as eqx
 import numpy as np
-import optax
+import optimistix as optx
 from jax import Array
 from jax.flatten_util import ravel_pytree
 from jaxtyping import ArrayLike, Float
@@ -74,7 +77,6 @@ from .transcription import ConstrainedReorientation, held_torque_states
 
 __all__ = ["Reorientation", "minimum_time_reorientation"]
 
-_LINESEARCH_STEPS = 12  # zoom line-search cap (a vmapped while loop runs as long as its slowest start)
 _MEMORY = 20  # L-BFGS history
 _MU_MAX = 1e5  # penalty cap; the multipliers do the rest
 _POLISH_STEPS = 4  # Gauss-Newton projection steps onto the terminal conditions
@@ -122,26 +124,33 @@ def _residual(q, w, qf, wf):
     return jnp.concatenate([minus(q, qf), w - wf])
 
 
-def _lbfgs(f, x0, iters: int, memory_size: int = 10, linesearch_steps: int = 20, initial_guess: str = "one"):
-    """``iters`` optax L-BFGS steps (zoom line search) on ``f`` from ``x0`` (any pytree) in one
-    ``lax.scan``; returns the final parameters and ``f`` at every iteration. The defaults are
-    ``optax.lbfgs()``'s; the time-optimal solver keeps the previous step length as the line
-    search's first guess. Used only here (the examples take optimistix's L-BFGS, see
-    ``examples/_lbfgs.py``)."""
-    linesearch = optax.scale_by_zoom_linesearch(
-        max_linesearch_steps=linesearch_steps, initial_guess_strategy=initial_guess
-    )
-    opt = optax.lbfgs(memory_size=memory_size, linesearch=linesearch)
-    value_and_grad = optax.value_and_grad_from_state(f)
+def _lbfgs(f, x0, iters: int):
+    """``iters`` optimistix L-BFGS steps (history ``_MEMORY``, backtracking Armijo line search)
+    on the scalar ``f`` from ``x0`` (any pytree) in one ``lax.scan``, with no stopping test.
+
+    Why optimistix and not optax's L-BFGS (this solver's earlier choice): optax's zoom line search
+    traces ``f`` and its gradient at three call sites (the state's cached value, the bracketing
+    and the zoom phases), so the rollout and its adjoint compiled three times, and under the
+    starts' ``vmap`` every branch of the ``lax.cond`` between them ran. optimistix evaluates
+    ``f`` once per step. Measured on the suite's 10-interval problem (4 starts, 80 steps, this
+    2-core CPU): the inner solve traced in 2.9 s against 6.9 s and compiled in 6.0 s against
+    10.5 s."""
+    solver = optx.LBFGS(rtol=0.0, atol=0.0, history_length=_MEMORY)
+
+    def fn(y, _):
+        return f(y), None
+
+    f_struct = jax.ShapeDtypeStruct((), jnp.result_type(*jax.tree_util.tree_leaves(x0)))
+    state = solver.init(fn, x0, None, {}, f_struct, None, frozenset())
+    arrays, static = eqx.partition(state, eqx.is_array)  # the state holds functions: carry its arrays
 
     def body(carry, _):
-        x, state = carry
-        value, grad = value_and_grad(x, state=state)
-        updates, state = opt.update(grad, state, x, value=value, grad=grad, value_fn=f)
-        return (optax.apply_updates(x, updates), state), value
+        y, arrays = carry
+        y, state, _ = solver.step(fn, y, None, {}, eqx.combine(arrays, static), frozenset())
+        return (y, eqx.partition(state, eqx.is_array)[0]), None
 
-    (x, _), values = jax.lax.scan(body, (x0, opt.init(x0)), None, length=iters)
-    return x, values
+    (x, _), _ = jax.lax.scan(body, (x0, arrays), None, length=iters)
+    return x
 
 
 def _eigenaxis(q0, qf) -> tuple[float, np.ndarray]:
@@ -248,14 +257,18 @@ def _refine(x, pr: _Problem, substeps: int, iters: int):
 
     def step(carry, k):
         z, mult, best = carry
-        c, pullback = jax.vjp(residual, z)
-        jac = jax.vmap(pullback)(eye6)[0]
-        grad_t = jax.grad(lambda y: _unpack(unravel(y), pr)[0])(z)  # (0, ..., T) in sigma's slot
+        c = residual(z)
+        time = lambda y: _unpack(unravel(y), pr)[0]  # noqa: E731
+        grad_t = jax.grad(time)(z)  # (0, ..., T) in sigma's slot
+        # The constraints' Hessians (6, n, n) forward over forward, their Jacobian J coming with
+        # them: _refine compiled in 8.7 s against 12.1 s for forward over reverse (the suite's
+        # 10-interval problem, 4 starts, this 2-core CPU).
+        hess_c, jac = jax.jacfwd(lambda y: (jax.jacfwd(residual)(y),) * 2, has_aux=True)(z)
         mult = jnp.where(k == 0, -jnp.linalg.solve(jac @ jac.T + 1e-14 * eye6, jac @ grad_t), mult)
         g = grad_t + jac.T @ mult
         res = jnp.sqrt(g @ g + c @ c)
         best = jax.tree_util.tree_map(lambda a, b: jnp.where(res < best[2], a, b), (z, mult, res), best)
-        hess = jax.jacfwd(jax.grad(lambda y: _unpack(unravel(y), pr)[0] + mult @ residual(y)))(z)
+        hess = jax.hessian(time)(z) + jnp.einsum("i,izw->zw", mult, hess_c)
         kkt = jnp.block([[hess, jac.T], [jac, jnp.zeros((6, 6), z.dtype)]])
         sol = jnp.linalg.solve(kkt, -jnp.concatenate([grad_t, c]))
         ok = jnp.all(jnp.isfinite(sol))  # a singular system leaves the iterate where it is
@@ -281,7 +294,7 @@ def _solve(x, lam, mu, pr: _Problem, substeps: int, inner: int):
             c = _terminal_residual(z, pr, substeps)
             return _unpack(z, pr)[0] + lam1 @ c + 0.5 * mu1 * c @ c
 
-        x1, _ = _lbfgs(lagrangian, x1, inner, _MEMORY, _LINESEARCH_STEPS, initial_guess="keep")
+        x1 = _lbfgs(lagrangian, x1, inner)
         x_pol = _polish(x1, pr, substeps)
         return (
             x1,
