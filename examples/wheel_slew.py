@@ -80,24 +80,19 @@ def report(name, r, ys, drift):
     return boresight
 
 
-def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--intervals", type=int, default=16)
-    ap.add_argument("--out", default="examples/out")
-    a = ap.parse_args()
-    fast = jq.minimum_time_reorientation(INERTIA, None, Q0, QF, intervals=a.intervals, **CONSTRAINTS)
-    fuel = jq.minimum_fuel_reorientation(INERTIA, Q0, QF, 1.5 * float(fast.time), intervals=a.intervals, **CONSTRAINTS)
-    paths = []
-    for name, r in (("least time", fast), ("least fuel", fuel)):
-        ys, drift = resimulate(r, 40)
-        paths.append((name, r, ys, report(name, r, ys, drift)))
+def solve(intervals):
+    """Least time, then least fuel in 1.5 times that time, with every constraint."""
+    fast = jq.minimum_time_reorientation(INERTIA, None, Q0, QF, intervals=intervals, **CONSTRAINTS)
+    fuel = jq.minimum_fuel_reorientation(INERTIA, Q0, QF, 1.5 * float(fast.time), intervals=intervals, **CONSTRAINTS)
+    return fast, fuel
 
-    import matplotlib
 
-    matplotlib.use("Agg")
+def figure(paths):
+    """One row per result ``(name, r, ys, boresight)``: the boresight on the sky with the cone, the
+    wheel torques, the body rates and the wheel momenta against their limits."""
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(2, 4, figsize=(18, 7.5))
+    fig, ax = plt.subplots(len(paths), 4, figsize=(18, 3.75 * len(paths)), squeeze=False)
     for row, (name, r, ys, boresight) in enumerate(paths):
         plot_sky(ax[row, 0], boresight, f"boresight ({name})")
         ax[row, 0].set(xlabel="azimuth (deg)", ylabel="elevation (deg)", title=name, aspect="equal")
@@ -119,6 +114,23 @@ def main():
             ax[row, k].set(xlabel="t (s)", ylabel=label)
             ax[row, k].legend(fontsize=7)
     fig.tight_layout()
+    return fig
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--intervals", type=int, default=16)
+    ap.add_argument("--out", default="examples/out")
+    a = ap.parse_args()
+    paths = []
+    for name, r in zip(("least time", "least fuel"), solve(a.intervals)):
+        ys, drift = resimulate(r, 40)
+        paths.append((name, r, ys, report(name, r, ys, drift)))
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    fig = figure(paths)
     out = pathlib.Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     fig.savefig(out / "wheel_slew.png", dpi=100)

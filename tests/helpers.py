@@ -208,3 +208,21 @@ def run_example(*args: str) -> str:
     out = subprocess.run([sys.executable, *args], capture_output=True, text=True, cwd=root, timeout=300)
     assert out.returncode == 0, out.stderr[-3000:]
     return out.stdout
+
+
+def execute_notebook(path) -> None:
+    """Run the notebook at ``path`` top to bottom in a fresh kernel (cwd: its folder; the kernel
+    inherits the environment, so the run's persistent compilation cache too); a failing cell
+    raises ``CellExecutionError`` with its traceback."""
+    import nbclient
+    import nbformat
+
+    nb = nbformat.read(path, as_version=4)
+    client = nbclient.NotebookClient(
+        nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(path.parent)}}
+    )
+    client.execute()
+    errors = [
+        o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []) if o.get("output_type") == "error"
+    ]
+    assert not errors

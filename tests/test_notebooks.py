@@ -9,15 +9,18 @@ import pathlib
 
 import pytest
 
-from helpers import X64
+from helpers import X64, execute_notebook
 
 ROOT = pathlib.Path(__file__).parent.parent
 NOTEBOOKS = sorted((ROOT / "examples" / "notebooks").glob("*.ipynb"))
+# Executed by the test module whose fixtures compile the same solvers (the kernel then reads them
+# from the run's persistent compilation cache): test_optimal_control.py.
+ELSEWHERE = {"wheel_slew.ipynb"}
 pytestmark = pytest.mark.skipif(not X64, reason="notebooks run in float64 by design; once per make test")
 
 
 def test_there_are_notebooks():
-    assert {p.name for p in NOTEBOOKS} >= {"tour.ipynb", "slew.ipynb"}
+    assert {p.name for p in NOTEBOOKS} >= {"tour.ipynb", "slew.ipynb"} | ELSEWHERE
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.name)
@@ -31,16 +34,7 @@ def test_notebook_is_its_jupytext_source(path):
     assert all(not c.get("outputs") for c in notebook.cells if c.cell_type == "code")  # committed without outputs
 
 
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda p: p.name)
+@pytest.mark.parametrize("path", [p for p in NOTEBOOKS if p.name not in ELSEWHERE], ids=lambda p: p.name)
 def test_notebook_executes(path):
-    nbformat = pytest.importorskip("nbformat")
-    nbclient = pytest.importorskip("nbclient")
-    nb = nbformat.read(path, as_version=4)
-    client = nbclient.NotebookClient(
-        nb, timeout=300, kernel_name="python3", resources={"metadata": {"path": str(path.parent)}}
-    )
-    client.execute()  # raises CellExecutionError, with the cell and traceback, if any cell fails
-    errors = [
-        o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []) if o.get("output_type") == "error"
-    ]
-    assert not errors
+    pytest.importorskip("nbclient")
+    execute_notebook(path)

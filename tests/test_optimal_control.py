@@ -8,6 +8,8 @@ module fixtures and kept to few intervals."""
 
 from __future__ import annotations
 
+import pathlib
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -15,7 +17,7 @@ import pytest
 from scipy.optimize import minimize
 
 import jaxquat as jq
-from helpers import X64, run_example_in_process
+from helpers import X64, execute_notebook, run_example_in_process
 
 pytestmark = pytest.mark.skipif(not X64, reason="the interior-point method converges to 1e-9 in float64 only")
 
@@ -361,6 +363,15 @@ def test_wheel_slew_example(wheel_bilimoria_wie, tmp_path):
     # Least time: the rate, wheel momentum and torque limits all bind.
     assert rate[0] > 0.15 * 0.999 and momentum[0] > 0.12 * 0.999 and torque[0] > 0.1 * 0.999, text
     assert (tmp_path / "wheel_slew.png").stat().st_size > 10_000
+
+
+def test_wheel_slew_notebook():
+    """examples/notebooks/wheel_slew.ipynb executes (its cells assert every limit on a 10x finer
+    re-simulation, and least fuel below the least-time slew's). Here and not in test_notebooks.py:
+    its solves have the example test's configuration, just compiled in this worker, so the
+    notebook's kernel reads them from the run's persistent compilation cache."""
+    pytest.importorskip("nbclient")
+    execute_notebook(pathlib.Path(__file__).parent.parent / "examples" / "notebooks" / "wheel_slew.ipynb")
 
 
 # ------------------------------------------------------------------ weighted mixes
