@@ -171,13 +171,14 @@ def dop853_reference(q0, w0, moments, ts):
 
 
 def run_example_in_process(script: str, *args: str) -> str:
-    """Run an example's ``main`` in this process (float64 pass only: examples switch float64
-    on) with ``sys.argv`` set; its stdout. No interpreter and JAX start-up per example (about
-    3 s each), and where a test module has already compiled the same jitted solver the example
-    reuses it instead of tracing and compiling anew. The example runs with the suite's rank
-    promotion (``"raise"``; a user's default is ``"allow"``, which every example also meets): JAX's
-    compilation cache is keyed on it, so under ``"allow"`` the example compiled every solver of
-    the test module again (the time-optimal example 25.1 s against 1.9 s)."""
+    """Run an example's ``main`` in this process with ``sys.argv`` set; its stdout (an example
+    that switches float64 on belongs in the float64 pass, one in float32 in the float32 pass).
+    No interpreter and JAX start-up per example (about 3 s each), and where a test module has
+    already compiled the same jitted solver the example reuses it instead of tracing and
+    compiling anew. The example runs with the suite's rank promotion (``"raise"``; a user's
+    default is ``"allow"``, which every example also meets): JAX's compilation cache is keyed on
+    it, so under ``"allow"`` the example compiled every solver of the test module again (the
+    time-optimal example 25.1 s against 1.9 s)."""
     import contextlib
     import io
     import pathlib
@@ -196,18 +197,6 @@ def run_example_in_process(script: str, *args: str) -> str:
         sys.argv = argv
         sys.path.remove(str(path.parent))
     return buffer.getvalue()
-
-
-def run_example(*args: str) -> str:
-    """Run ``python *args`` from the repository root (examples set float64 themselves); its stdout."""
-    import pathlib
-    import subprocess
-    import sys
-
-    root = pathlib.Path(__file__).parent.parent
-    out = subprocess.run([sys.executable, *args], capture_output=True, text=True, cwd=root, timeout=300)
-    assert out.returncode == 0, out.stderr[-3000:]
-    return out.stdout
 
 
 def execute_notebook(path) -> None:
