@@ -7,7 +7,9 @@ quaternion ODE, the setup of the issue), free final time, terminal conditions
 ``tol``). Problems: Bilimoria & Wie's 180 degrees about x (J = I, |u_i| <= 1; continuous optimum
 3.24308) and Betts' asyq01 (J = diag(5621, 4547, 2364), |u_i| <= 50, 150 degrees about x;
 28.6304). Times are medians after compilation; jaxquat's compile time is reported apart.
-Then 100 different slews (random axes, 150 degrees, asyq01's body) in one batched call.
+A third problem turns Bilimoria & Wie's body by three reaction wheels whose momenta are bounded
+at every integration step. Then 100 different slews (random axes, 150 degrees, asyq01's body)
+in one batched call.
 
 Run: python benchmarks/optimal_control.py [--write docs/benchmarks.md]   (casadi: `make bench`)
 """
@@ -31,6 +33,10 @@ PROBLEMS = {
     "Bilimoria-Wie 180 deg": (np.eye(3), np.ones(3), np.pi, 80, 3.24308),
     "Betts asyq01": (np.diag([5621.0, 4547.0, 2364.0]), np.full(3, 50.0), np.deg2rad(150.0), 120, 28.6304),
 }
+# Bilimoria-Wie turned by three reaction wheels on the body axes (wheel torque |u_i| <= 1, the
+# body torque being -u) whose momenta must stay within 1.5 at every integration step (the free
+# optimum's wheels reach 1.63): (momentum limit, intervals). No published value.
+WHEEL_PROBLEM = ("Bilimoria-Wie by 3 wheels, momentum <= 1.5", 1.5, 80)
 
 
 def _guess(inertia, bound, theta, n):
@@ -67,18 +73,26 @@ def _guess(inertia, bound, theta, n):
     return float(T), X, np.asarray(V) * np.asarray(u_ref)
 
 
-def casadi_solve(inertia, bound, theta, n, substeps=4):
+def casadi_solve(inertia, bound, theta, n, substeps=4, momentum_limit=None):
+    """IPOPT on the same transcription; with ``momentum_limit`` the spacecraft is turned by three
+    wheels on its body axes (state ``(q, w, h)``, ``J w' = -u - w x (J w + h)``, ``h' = u``, the
+    wheel momenta bounded at every RK4 step's end, the final ones free)."""
     import casadi as ca
 
     J, Jinv = ca.DM(inertia), ca.DM(np.linalg.inv(inertia))
+    wheels = momentum_limit is not None
+    nx = 10 if wheels else 7
 
     def f(x, u):
-        q, w = x[:4], x[4:]
+        q, w = x[:4], x[4:7]
         qdot = 0.5 * ca.vertcat(-ca.dot(q[1:], w), q[0] * w + ca.cross(q[1:], w))
-        return ca.vertcat(qdot, Jinv @ (u - ca.cross(w, J @ w)))
+        if not wheels:
+            return ca.vertcat(qdot, Jinv @ (u - ca.cross(w, J @ w)))
+        h = x[7:]
+        return ca.vertcat(qdot, Jinv @ (-u - ca.cross(w, J @ w + h)), u)
 
     opti = ca.Opti()
-    X, U, T = opti.variable(7, n + 1), opti.variable(3, n), opti.variable()
+    X, U, T = opti.variable(nx, n + 1), opti.variable(3, n), opti.variable()
     h = T / n / substeps
     for k in range(n):
         x = X[:, k]
@@ -88,15 +102,20 @@ def casadi_solve(inertia, bound, theta, n, substeps=4):
             k3 = f(x + h / 2 * k2, U[:, k])
             k4 = f(x + h * k3, U[:, k])
             x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            if wheels:
+                opti.subject_to(opti.bounded(-momentum_limit, x[7:], momentum_limit))
         opti.subject_to(X[:, k + 1] == x)
     qf = np.array([np.cos(theta / 2), np.sin(theta / 2), 0, 0])
-    opti.subject_to(X[:, 0] == np.array([1, 0, 0, 0, 0, 0, 0.0]))
+    opti.subject_to(X[:, 0] == np.zeros(nx) + np.eye(nx)[0])
     qN = X[:4, n]
-    opti.subject_to(ca.vertcat(qf[0] * qN[1:] - qN[0] * qf[1:] - ca.cross(qf[1:], qN[1:]), X[4:, n]) == 0)
+    opti.subject_to(ca.vertcat(qf[0] * qN[1:] - qN[0] * qf[1:] - ca.cross(qf[1:], qN[1:]), X[4:7, n]) == 0)
     opti.subject_to(opti.bounded(-bound[0], U, bound[0]))
     opti.subject_to(T >= 0.05)
     opti.minimize(T)
     T0, X0, U0 = _guess(inertia, bound, theta, n)
+    if wheels:  # at rest the total momentum J w + h stays 0: the wheels carry -J w and torque -u
+        X0 = np.concatenate([X0, -X0[:, 4:7] @ np.asarray(inertia).T], axis=1)
+        U0 = -U0
     opti.set_initial(T, T0)
     opti.set_initial(X, X0.T)
     opti.set_initial(U, U0.T)
@@ -108,10 +127,13 @@ def casadi_solve(inertia, bound, theta, n, substeps=4):
     return run
 
 
-def jaxquat_solve(inertia, bound, theta, n):
+def jaxquat_solve(inertia, bound, theta, n, momentum_limit=None):
     # starts=1: IPOPT solves from one start, the same eigenaxis guess (the default is 8 starts).
     qf = jnp.asarray([np.cos(theta / 2), np.sin(theta / 2), 0, 0])
-    return lambda: jq.constrained_minimum_time(inertia, bound, jq.identity(), qf, intervals=n, starts=1)
+    if momentum_limit is None:
+        return lambda: jq.constrained_minimum_time(inertia, bound, jq.identity(), qf, intervals=n, starts=1)
+    wheels = jq.ReactionWheels(np.eye(3), bound[0], momentum_limit=momentum_limit)
+    return lambda: jq.constrained_minimum_time(inertia, None, jq.identity(), qf, intervals=n, starts=1, wheels=wheels)
 
 
 def main():
@@ -126,15 +148,18 @@ def main():
         have_casadi = True
     except ImportError:
         have_casadi = False
-    for name, (inertia, bound, theta, n, published) in PROBLEMS.items():
-        fn = jaxquat_solve(inertia, bound, theta, n)
+    wheel_name, limit, wheel_n = WHEEL_PROBLEM
+    cases = [(name, *spec, None) for name, spec in PROBLEMS.items()]
+    cases.append((wheel_name, *PROBLEMS["Bilimoria-Wie 180 deg"][:3], wheel_n, None, limit))
+    for name, inertia, bound, theta, n, published, momentum_limit in cases:
+        fn = jaxquat_solve(inertia, bound, theta, n, momentum_limit)
         t0 = time.perf_counter()
         r = jax.block_until_ready(fn())
         first = time.perf_counter() - t0
         t_jq = median_time(fn, repeats=5, warmup=1, max_seconds=20)
         row = [name, str(n), f"{float(r.time):.6f}", f"{int(r.iterations)}", f"{t_jq:.2f} s", f"{first:.1f} s"]
         if have_casadi:
-            cs = casadi_solve(inertia, bound, theta, n)
+            cs = casadi_solve(inertia, bound, theta, n, momentum_limit=momentum_limit)
             t_cs_first = time.perf_counter()
             T_cs = cs()
             t_cs_first = time.perf_counter() - t_cs_first
@@ -147,7 +172,7 @@ def main():
             row += [f"{T_cs:.6f}", f"{t_cs:.2f} s", f"{t_cs / t_jq:.1f}x"]
         else:
             row += ["not installed"] * 3
-        row.insert(3, f"{abs(float(r.time) / published - 1) * 100:.3f} %")
+        row.insert(3, "-" if published is None else f"{abs(float(r.time) / published - 1) * 100:.3f} %")
         rows.append(row)
         print(" | ".join(row), flush=True)
 
