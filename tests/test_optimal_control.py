@@ -52,29 +52,48 @@ def _resimulate(inertia, q0, w0, controls, time, substeps):
 
 
 def test_solve_shooting_matches_scipy_on_a_bounded_double_integrator():
-    """min sum h u^2 for x'' = u (exact discretisation of the held control), |u| <= 5,
-    rest to rest over a unit distance in unit time: the bound is active (the unconstrained
-    optimum peaks at 6); SLSQP on the same discrete problem is the reference."""
+    """min sum h (u^2 + pos^2 vel^2) for x'' = u (exact discretisation of the held control),
+    |u| <= 5, rest to rest over a unit distance in unit time: the bound is active (the
+    unconstrained optimum peaks above 6); SLSQP on the same discrete problem is the reference.
+    The state cost makes the stage Hessian depend on the point (mixed terms), and both ways of
+    forming it (``hessian``) must take the same steps: the same iterates to rounding, in the same
+    number of iterations (a wrong Hessian would still find the KKT point, by other steps)."""
     n, h = 10, 0.1
 
     def stage(x, u, p, data, k):
         pos, vel = x
         nxt = jnp.stack([pos + h * vel + 0.5 * h * h * u[0], vel + h * u[0]])
-        return nxt, h * u[0] ** 2, jnp.concatenate([u - 5.0, -u - 5.0])
+        return nxt, h * (u[0] ** 2 + pos**2 * vel**2), jnp.concatenate([u - 5.0, -u - 5.0])
 
     problem = jq.ShootingProblem(stage, lambda x, data: x - jnp.asarray([1.0, 0.0]), lambda p, data: jnp.zeros(()))
     x0 = jnp.zeros(2)
-    sol = jax.jit(lambda: jq.solve_shooting(problem, x0, jnp.zeros((n, 2)), jnp.zeros((n, 1)), jnp.zeros(0)))()
+    solve = jax.jit(
+        lambda mode: jq.solve_shooting(problem, x0, jnp.zeros((n, 2)), jnp.zeros((n, 1)), jnp.zeros(0), hessian=mode),
+        static_argnums=0,
+    )
+    sol, rev = solve("forward"), solve("reverse")
     assert bool(sol.converged) and float(sol.kkt) < 1e-8
+    assert int(rev.iterations) == int(sol.iterations)
+    np.testing.assert_allclose(np.asarray(rev.u), np.asarray(sol.u), rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="argument 'hessian' must be 'forward' or 'reverse'"):
+        jq.solve_shooting(problem, x0, jnp.zeros((n, 2)), jnp.zeros((n, 1)), jnp.zeros(0), hessian="exact")
+
+    def rollout(u):
+        xs = [np.zeros(2)]
+        for uk in u:
+            x = xs[-1]
+            xs.append(np.array([x[0] + h * x[1] + 0.5 * h * h * uk, x[1] + h * uk]))
+        return np.array(xs)
 
     def final(u):
-        x = np.zeros(2)
-        for uk in u:
-            x = np.array([x[0] + h * x[1] + 0.5 * h * h * uk, x[1] + h * uk])
-        return x
+        return rollout(u)[-1]
+
+    def cost(u):
+        xs = rollout(u)[:-1]
+        return h * np.sum(u**2 + xs[:, 0] ** 2 * xs[:, 1] ** 2)
 
     ref = minimize(
-        lambda u: h * np.sum(u**2),
+        cost,
         np.zeros(n),
         method="SLSQP",
         bounds=[(-5, 5)] * n,

@@ -361,6 +361,9 @@ def _start(cfg: Config, data: Data, init):
     return _resampled(cfg, data, init)
 
 
+_REVERSE_HESSIAN_PAIRS = 16  # (problem, start) pairs from which the batch uses hessian="reverse"
+
+
 @functools.partial(jax.jit, static_argnames=("cfg", "max_iter"))
 def solve(data: Data, cfg: Config, tol, max_iter: int, keys, init=None):
     """A batch of problems (``data`` with a leading axis ``B``), every start of each (one per row
@@ -380,12 +383,16 @@ def solve(data: Data, cfg: Config, tol, max_iter: int, keys, init=None):
     # from 10 onto 20 intervals, 9 against 12 for Bilimoria-Wie.
     clip, mu0 = (0.9, 0.1) if init is None else (0.95, 0.01)
     B, S = data.q0.shape[0], keys.shape[0]
+    # Large batches form the stage Hessians forward over reverse: each solve twice as fast for a
+    # longer compile, which a batch repays (see solve_shooting's ``hessian``); up to the default
+    # 8 starts of one problem, forward over forward keeps the first result sooner.
+    hessian = "reverse" if B * S >= _REVERSE_HESSIAN_PAIRS else "forward"
 
     def one(d, X, V, p, key, first):
         kick = _PERTURBATION * jax.random.normal(key, V.shape, V.dtype)
         U = _controls(cfg, jnp.where(first, V, V + kick), clip)
         x0 = jnp.concatenate([d.q0, d.w0 / d.w_ref, d.h0 / d.h_ref])
-        return solve_shooting(problem, x0, X, U, p, d, tol=tol, max_iter=max_iter, mu0=mu0)
+        return solve_shooting(problem, x0, X, U, p, d, tol=tol, max_iter=max_iter, mu0=mu0, hessian=hessian)
 
     def pairs(a):  # (B, ...) -> (B * S, ...): each problem once per start
         return jnp.repeat(a, S, axis=0)
