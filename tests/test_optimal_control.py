@@ -17,7 +17,7 @@ import pytest
 from scipy.optimize import minimize
 
 import jaxquat as jq
-from helpers import X64, execute_notebook, run_example_in_process
+from helpers import X64, run_example_in_process, run_notebook_in_process
 
 pytestmark = pytest.mark.skipif(not X64, reason="the interior-point method converges to 1e-9 in float64 only")
 
@@ -385,12 +385,11 @@ def test_wheel_slew_example(wheel_bilimoria_wie, tmp_path):
 
 
 def test_wheel_slew_notebook():
-    """examples/notebooks/wheel_slew.ipynb executes (its cells assert every limit on a 10x finer
-    re-simulation, and least fuel below the least-time slew's). Here and not in test_notebooks.py:
-    its solves have the example test's configuration, just compiled in this worker, so the
-    notebook's kernel reads them from the run's persistent compilation cache."""
-    pytest.importorskip("nbclient")
-    execute_notebook(pathlib.Path(__file__).parent.parent / "examples" / "notebooks" / "wheel_slew.ipynb")
+    """examples/notebooks/wheel_slew.ipynb's cells run (they assert every limit on a 10x finer
+    re-simulation, and least fuel below the least-time slew's). Here and not in
+    test_notebooks.py: its solves have the example test's configuration, just compiled in this
+    process, and reuse it."""
+    run_notebook_in_process(pathlib.Path(__file__).parent.parent / "examples" / "notebooks" / "wheel_slew.ipynb")
 
 
 # ------------------------------------------------------------------ weighted mixes

@@ -70,7 +70,7 @@ def turn(q, w):
 
 _, qs = jax.lax.scan(turn, q_true, omega)
 k1, k2 = jax.random.split(jax.random.PRNGKey(1))
-gyro = omega + bias + sv / jnp.sqrt(dt) * jax.random.normal(k1, (n, 3))
+gyro = omega + bias[None] + sv / jnp.sqrt(dt) * jax.random.normal(k1, (n, 3))
 meas = jq.rotate(jq.conjugate(qs)[:, None], jnp.broadcast_to(stars, (n, 2, 3))) + sigma * jax.random.normal(
     k2, (n, 2, 3)
 )
