@@ -53,23 +53,29 @@ def x64():
     return bool(jax.config.jax_enable_x64)
 
 
-# The files that take longest (seconds in a float64 pass on a 2-core CPU, --durations: the
-# integrators 138, optimal control 122, the time-optimal solvers 109, the contract 86, the
-# examples 61 and 52, the torque-free flow 60, the notebooks 48, the Lie solvers 47, the
-# spline 44) are collected first, the rest in file order. pytest-xdist's --dist loadfile hands a
+# The files that take longest (seconds of test time on a 2-core CPU, --durations=0, float64 /
+# float32 pass: optimal control about 145 / 0, the integrators 138 / 40, the contract 100 / 103,
+# the time-optimal solvers about 80 / 0, the torque-free flow 59 / 26, the examples 56 / 0, the
+# spline 45 / 26, the notebooks about 40 / 0, the Lie solvers 39 / 17, then the Euler angles,
+# the optimisation examples, the UKF, attitude determination and the MEKF, 14-26 s each) are
+# collected first, the rest in file order. pytest-xdist's --dist loadfile hands a
 # worker the next file as it frees up, so the long files start first and the short ones fill the
 # end, instead of one worker finishing a long file alone. Order only: no test depends on another.
 _LONGEST_FIRST = (
-    "test_integrators.py",
     "test_optimal_control.py",
+    "test_integrators.py",
+    "test_contract.py",  # the longest in the float32 pass
     "test_time_optimal.py",
-    "test_contract.py",
-    "test_examples.py",
     "test_torque_free.py",
-    "test_examples_optimisation.py",
+    "test_examples.py",
+    "test_spline.py",
     "test_notebooks.py",
     "test_lie_solvers.py",
-    "test_spline.py",
+    "test_euler_angles.py",
+    "test_examples_optimisation.py",
+    "test_ukf.py",
+    "test_determination.py",
+    "test_mekf.py",
 )
 
 
