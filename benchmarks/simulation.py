@@ -15,11 +15,14 @@ all jitted and timed after compilation with block_until_ready (median of repeats
 
 Beside each throughput: the largest attitude error at T = 10 against the exact
 solution (jaxquat.euler_poinsot in float64) and the largest | |q| - 1 |.
-Also: reverse-mode gradient cost (jax.grad of a final-attitude loss through
-simulate / the forward simulate) and compile time (time to the first result of
-simulate, and of one optax step through it).
+Also: the cost of autodiff against the forward pass (reverse mode: jax.grad of a
+final-attitude loss; forward mode: one jvp tangent, and jacfwd with 3 columns), float32 and
+float64, at batches 10^3 and 10^5, for simulate and the hand RK4 (checkpointed as simulate's
+scan path is), and compile time (time to the first result of simulate, and of one optax step
+through it).
 
-    python benchmarks/simulation.py [--batches 1 1000 100000] [--write docs/benchmarks.md]
+    python benchmarks/simulation.py [--batches 1 1000 100000] [--grad-batches 1000 100000]
+                                    [--write docs/benchmarks.md]
 """
 
 from __future__ import annotations
@@ -67,7 +70,7 @@ def raw_field(y):
     return jnp.concatenate([qd, jnp.cross(m * w, w) / m], -1)
 
 
-def hand_rk4(q0, w0):
+def hand_rk4(q0, w0, checkpoint=False):
     def step(y, _):
         k1 = raw_field(y)
         k2 = raw_field(y + 0.5 * DT * k1)
@@ -77,8 +80,14 @@ def hand_rk4(q0, w0):
         q = y[..., :4] / jnp.linalg.norm(y[..., :4], axis=-1, keepdims=True)
         return jnp.concatenate([q, y[..., 4:]], -1), None
 
-    y, _ = jax.lax.scan(step, jnp.concatenate([q0, w0], -1), None, length=STEPS)
+    y, _ = jax.lax.scan(jax.checkpoint(step) if checkpoint else step, jnp.concatenate([q0, w0], -1), None, length=STEPS)
     return y[..., :4]
+
+
+def hand_rk4_checkpointed(q0, w0):
+    """The hand RK4 with each step rematerialised in reverse mode (as simulate's scan path): without
+    it the gradient at 10^5 bodies stores every step's residuals (52 GB, out of memory here)."""
+    return hand_rk4(q0, w0, checkpoint=True)
 
 
 def tsit5(q0, w0):
@@ -166,7 +175,43 @@ def throughput(batches, repeats):
     return rows
 
 
-def gradient_and_compile(repeats):
+def gradient_table(batches, repeats):
+    """Forward pass, reverse mode (``jax.grad`` of a final-attitude loss), forward mode (one
+    ``jax.jvp`` tangent on ``w0``, and ``jax.jacfwd`` with 3 columns: a rate offset shared by
+    the batch) for jaxquat's RKMK4 and the hand RK4, float32 and float64: ``(dtype, batch,
+    contender, forward, reverse, jvp, jacfwd)`` in seconds."""
+    rows = []
+    for dtype in (F32, jnp.float64):
+        for n in batches:
+            q0, w0 = bodies(n, seed=1)
+            q0, w0 = jnp.asarray(q0, dtype), jnp.asarray(w0, dtype)
+            target = jq.random(jax.random.PRNGKey(0), (n,), dtype)
+            warm = 1 if n > 10_000 else 2
+            for name, run in (
+                ("jaxquat simulate, RKMK4", jaxquat_rkmk4),
+                ("hand-written RK4, checkpointed", hand_rk4_checkpointed),
+            ):
+                rows.append((jnp.dtype(dtype).name, n, name, *_autodiff_times(run, q0, w0, target, repeats, warm)))
+    return rows
+
+
+def _autodiff_times(run, q0, w0, target, repeats, warm):
+    """Seconds of ``run``'s forward pass, ``grad``, one-tangent ``jvp`` and 3-column ``jacfwd``."""
+
+    def loss(w):
+        return jnp.mean(jnp.sum((run(q0, w) - target) ** 2, -1))
+
+    cases = (
+        (jax.jit(run), (q0, w0)),
+        (jax.jit(jax.grad(loss)), (w0,)),
+        (jax.jit(lambda w, d: jax.jvp(lambda x: run(q0, x), (w,), (d,))[1]), (w0, w0)),
+        (jax.jit(jax.jacfwd(lambda p: run(q0, w0 + p))), (jnp.zeros(3, w0.dtype),)),
+    )
+    return [median_time(fn, *a, repeats=repeats, warmup=warm) for fn, a in cases]
+
+
+def compile_times():
+    """Time to the first result at batch 1000, float32: ``simulate``, and one optax Adam step through it."""
     q0, w0 = bodies(1000, seed=1)
     q0, w0 = jnp.asarray(q0, F32), jnp.asarray(w0, F32)
     target = jq.random(jax.random.PRNGKey(0), (1000,), F32)
@@ -175,8 +220,6 @@ def gradient_and_compile(repeats):
         q = jaxquat_rkmk4(q0, w0_)
         return jnp.mean(jnp.sum((q - target) ** 2, -1))
 
-    forward = median_time(jax.jit(jaxquat_rkmk4), q0, w0, repeats=repeats)
-    backward = median_time(jax.jit(jax.grad(loss)), w0, repeats=repeats)
     t0 = time.perf_counter()
     jax.block_until_ready(jax.jit(lambda a, b: jaxquat_rkmk4(a, b) + 0)(q0, w0))  # a fresh function: compiles
     first_sim = time.perf_counter() - t0
@@ -190,11 +233,11 @@ def gradient_and_compile(repeats):
     t0 = time.perf_counter()
     jax.block_until_ready(jax.jit(opt_step)(w0, opt.init(w0)))
     first_step = time.perf_counter() - t0
-    return forward, backward, first_sim, first_step
+    return first_sim, first_step
 
 
-def markdown(rows, grad):
-    forward, backward, first_sim, first_step = grad
+def markdown(rows, grad_rows, compiled):
+    first_sim, first_step = compiled
     by = {(n, name): rate for n, name, rate, *_ in rows}
     lines = [
         f"Torque-free bodies, moments (1, 2, 3), float32, dt = {DT}, {STEPS} steps; {machine()}. "
@@ -212,8 +255,18 @@ def markdown(rows, grad):
         lines.append(f"| {n:,} | {name} | {rate:.2e} | {rate / hand:.2f}x | {err:.1e} | {med:.1e} | {drift:.1e} |")
     lines += [
         "",
-        f"Gradient cost (batch 1000): `jax.grad` of a final-attitude loss through `simulate` "
-        f"{backward * 1e3:.1f} ms / forward {forward * 1e3:.1f} ms = **{backward / forward:.2f}x**.",
+        "Autodiff cost against the forward pass (final-attitude loss; forward mode: one `jax.jvp` "
+        "tangent on `w0`, `jax.jacfwd` with 3 columns, a rate offset shared by the batch):",
+        "",
+        "| dtype | batch | contender | forward | reverse (`grad`) | `jvp` | `jacfwd`, 3 columns |",
+        "|---|---:|---|---:|---:|---:|---:|",
+    ]
+    for dtype, n, name, fwd, rev, jvp, jac in grad_rows:
+        lines.append(
+            f"| {dtype} | {n:,} | {name} | {fwd * 1e3:.1f} ms | {rev / fwd:.2f}x | {jvp / fwd:.2f}x "
+            f"| {jac / fwd:.2f}x |"
+        )
+    lines += [
         "",
         f"Compile time (time to first result, batch 1000): `simulate` {first_sim:.2f} s; one optax Adam step "
         f"through it (forward + reverse) {first_step:.2f} s.",
@@ -226,9 +279,10 @@ def main(argv=None):
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 1000, 100_000])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--write", help="markdown file whose 'simulation' section to rewrite")
+    ap.add_argument("--grad-batches", type=int, nargs="+", default=[1000, 100_000])
     a = ap.parse_args(argv)
     rows = throughput(a.batches, a.repeats)
-    md = markdown(rows, gradient_and_compile(a.repeats))
+    md = markdown(rows, gradient_table(a.grad_batches, a.repeats), compile_times())
     print(md)
     if a.write:
         write_section(a.write, "simulation", "## Simulation throughput, gradient cost, compile time\n\n" + md)

@@ -341,9 +341,11 @@ def _spin_torque(t, q, w, args):
 
 @pytest.mark.parametrize("solver", [jq.RKMK4(), jq.LieEuler()], ids=["RKMK4", "LieEuler"])
 def test_scan_path_matches_diffeqsolve(solver):
-    """simulate's fixed-step lax.scan (the default for RKMK4/LieEuler with concrete ts) against
-    the same steps through diffrax.diffeqsolve (forced by passing an adjoint): per-body inertia,
-    a torque with args, ts not a multiple of dt0 (17 equal steps of 0.5/17 per interval)."""
+    """simulate's fixed-step lax.scan (the default for RKMK4/LieEuler with concrete ts; the
+    struct-of-arrays step) against the same solver's own steps through diffrax.diffeqsolve (forced
+    by passing an adjoint): per-body diagonal inertia and a body torque with args, then a full
+    shared tensor and a space-frame torque; ts not a multiple of dt0 (17 equal steps of 0.5/17
+    per interval)."""
     rng = np.random.default_rng(3)
     q0 = jq.normalize(jnp.asarray(rng.normal(size=(3, 4)), DTYPE))
     w0 = jnp.asarray(rng.normal(size=(3, 3)), DTYPE)
@@ -364,10 +366,37 @@ def test_scan_path_matches_diffeqsolve(solver):
     assert fast.solution is None and slow.solution is not None
     assert_close(fast.q, slow.q, tol=1e-11 if X64 else 2e-5, what="q")
     assert_close(fast.omega, slow.omega, tol=1e-11 if X64 else 2e-5, what="omega")
+    # a full (not diagonal) shared tensor and a space-frame torque: the struct-of-arrays step's
+    # other branches
+    full = jq.to_matrix(q0[0]) @ inertia[1] @ jq.to_matrix(q0[0]).T
+    fast, slow = (
+        jq.simulate(q0, w0, full, ts, torque=_spin_torque, torque_frame="space", args=0.3, solver=solver, dt0=dt0, **kw)
+        for dt0, kw in ((0.03, {}), (0.5 / 17, dict(adjoint=diffrax.RecursiveCheckpointAdjoint())))
+    )
+    assert_close(fast.q, slow.q, tol=1e-11 if X64 else 2e-5, what="q, full tensor")
+    assert_close(fast.omega, slow.omega, tol=1e-11 if X64 else 2e-5, what="omega, full tensor")
     # the shared-tensor case (kept (3, 3) inside the scan) agrees with the broadcast one
     shared = jq.simulate(q0, w0, inertia[0], ts, solver=solver, dt0=0.03)
     broadcast = jq.simulate(q0, w0, jnp.broadcast_to(inertia[0], (3, 3, 3)), ts, solver=solver, dt0=0.03)
     assert_close(shared.q, broadcast.q, tol=1e-13 if X64 else 1e-6, what="shared inertia")
+
+
+def test_the_lie_solvers_scan_path_is_the_struct_of_arrays_step(monkeypatch):
+    """simulate's scan path runs LieEuler and RKMK4 on the struct-of-arrays step (whose reverse
+    pass is element-wise) and the splittings on their own steps: a fresh shape (so the compiled
+    solve is traced again) records which ran."""
+    from jaxquat.integration import struct_of_arrays
+
+    calls = []
+    original = struct_of_arrays.solve
+    monkeypatch.setattr(struct_of_arrays, "solve", lambda *a, **k: calls.append(a[0]) or original(*a, **k))
+    q0 = jq.identity((5,), DTYPE)
+    w0 = jnp.broadcast_to(jnp.asarray(W0, DTYPE), (5, 3))
+    ts = np.linspace(0.0, 0.3, 6)
+    for solver, expected in ((jq.RKMK4(), 4), (jq.LieEuler(), 1), (jq.RigidBodySplit(), None)):
+        calls.clear()
+        jq.simulate(q0, w0, jnp.diag(jnp.asarray(I_DIAG, DTYPE)), ts, solver=solver, dt0=0.01)
+        assert [len(tab.b) for tab in calls] == ([] if expected is None else [expected]), type(solver).__name__
 
 
 def test_scan_path_gradient_and_unit_norm_in_float32_too():

@@ -1,7 +1,8 @@
 """The fixed-step driver: any diffrax solver stepped by ``lax.scan``, without ``diffeqsolve``.
 
-``solve_fixed_steps`` is the fast path of :func:`jaxquat.simulate` and the rollout of
-:func:`jaxquat.minimum_time_reorientation`. It drives the solver only through diffrax's
+``solve_fixed_steps`` is the fast path of :func:`jaxquat.simulate` for the splittings and the
+rollout of :func:`jaxquat.minimum_time_reorientation`; ``scan_steps`` is its scan for any step
+function (the struct-of-arrays Lie steps of ``simulate`` run on it). It drives the solver only through diffrax's
 public solver interface (``init`` once, then ``step``), so it serves every model and every
 fixed-step solver (the Lie solvers, the splittings, diffrax's own). Against
 ``diffeqsolve`` with ``ConstantStepSize`` it drops the step-size controller, the event and
@@ -11,6 +12,7 @@ save bookkeeping and the while loop, which a reverse pass must otherwise checkpo
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import diffrax
@@ -65,13 +67,41 @@ def solve_fixed_steps(
         args = jax.tree.map(lambda x: x[0], interval_args)
     state = solver.init(terms, ts[0], ts[0] + (ts[1] - ts[0]) / substeps, y0, args)
 
-    def one_step(carry, k, t0, h, step_args, jump):
+    def step(carry, t0, t1, step_args, jump):
         y, s = carry
-        y1, _, _, s1, _ = solver.step(terms, t0 + k * h, t0 + (k + 1) * h, y, step_args, s, jump)
+        y1, _, _, s1, _ = solver.step(terms, t0, t1, y, step_args, s, jump)
         return y1, s1
 
-    if checkpoint:
-        one_step = jax.checkpoint(one_step)
+    return scan_steps(
+        step,
+        ts,
+        (y0, state),
+        args,
+        substeps=substeps,
+        interval_args=interval_args,
+        checkpoint=checkpoint,
+        saved=lambda carry: carry[0],
+    )
+
+
+def scan_steps(
+    step: Callable,
+    ts: Array,
+    y0: Any,
+    args: Any = None,
+    *,
+    substeps: int,
+    interval_args: Any = None,
+    checkpoint: bool = True,
+    saved: Callable = lambda y: y,
+) -> Any:
+    """The ``lax.scan`` behind :func:`solve_fixed_steps`, for any step function
+    ``step(y, t0, t1, args, jump) -> y`` on a pytree state: ``substeps`` equal steps per interval
+    of ``ts``, the state at every ``ts`` stacked on a leading axis (``ys[0] = y0``). ``jump`` is
+    True on each interval's first step when ``interval_args`` is given. ``checkpoint``:
+    rematerialise each step in reverse mode. ``saved(y)``: the part of the state kept at each
+    of ``ts`` (all of it by default)."""
+    one_step = jax.checkpoint(step) if checkpoint else step
 
     def interval(carry, xs):
         t0, t1, step_args = xs
@@ -80,13 +110,13 @@ def solve_fixed_steps(
 
         def inner(c, k):
             jump = False if interval_args is None else k == 0
-            return one_step(c, k, t0, h, step_args, jump), None
+            return one_step(c, t0 + k * h, t0 + (k + 1) * h, step_args, jump), None
 
         if substeps == 1:  # no scan of length 1: each transform of a scan retraces its body
             carry, _ = inner(carry, jnp.zeros((), ts.dtype))
         else:
             carry, _ = jax.lax.scan(inner, carry, jnp.arange(substeps, dtype=ts.dtype))
-        return carry, carry[0]
+        return carry, saved(carry)
 
-    _, ys = jax.lax.scan(interval, (y0, state), (ts[:-1], ts[1:], interval_args))
-    return jax.tree.map(lambda a, b: jnp.concatenate([jnp.asarray(a)[None], b]), y0, ys)
+    _, ys = jax.lax.scan(interval, y0, (ts[:-1], ts[1:], interval_args))
+    return jax.tree.map(lambda a, b: jnp.concatenate([jnp.asarray(a)[None], b]), saved(y0), ys)

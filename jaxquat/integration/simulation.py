@@ -16,12 +16,14 @@ from jax import Array
 
 from .. import _arrays, _checks, _quaternion, _rotation
 from ..mechanics.inertia import validated
+from . import struct_of_arrays
 from .fixed_step import solve_fixed_steps
-from .lie_solvers import RKMK45, AbstractLieSolver, BodyRateTerm
+from .lie_solvers import RKMK45, AbstractLieSolver, AbstractRKMK, BodyRateTerm, LieEuler
 from ..mechanics.rigid_body import RigidBody
 from .splitting import AbstractSplitting, EulerPoinsotSplit
 from ..mechanics.inertia import principal_axes
 from ..mechanics.torque_free import propagate
+from ..mechanics.torques import as_body_torque
 
 __all__ = ["Simulation", "simulate"]
 
@@ -88,9 +90,12 @@ def simulate(
 
     Fast path: every fixed-step jaxquat solver (``LieEuler``, ``RKMK4``, the splittings)
     with concrete ``ts`` and ``dt0``, no ``adjoint`` or ``progress``, and ``max_steps`` (if
-    given) not exceeded, runs on :func:`jaxquat.solve_fixed_steps` (a ``lax.scan`` over the
-    steps through the solver's own ``init``/``step``) instead of ``diffeqsolve`` (1.5x the
-    throughput at 10^5 bodies, see ``docs/benchmarks.md``). Every interval
+    given) not exceeded, runs on a ``lax.scan`` over the steps instead of ``diffeqsolve`` (1.5x
+    the throughput at 10^5 bodies, see ``docs/benchmarks.md``): ``LieEuler`` and the RKMK
+    tableaus as the same method written on one array per state component
+    (:mod:`jaxquat.integration.struct_of_arrays`, whose reverse pass is element-wise too: the
+    gradient costs about 3x the forward pass instead of 12x), the splittings through their own
+    ``init``/``step`` (:func:`jaxquat.solve_fixed_steps`). Every interval
     ``[ts[i], ts[i+1]]`` is split into the same number
     ``ceil(max_i |ts[i+1] - ts[i]| / |dt0|)`` of equal steps, so no step exceeds
     ``dt0`` and every saved state is a step end, not an interpolant; each step is
@@ -156,7 +161,10 @@ def simulate(
         return _exact_simulate(q0, omega0, inertia if shared_inertia is None else shared_inertia, ts, principal)
     substeps = None if (adjoint is not None or progress) else _scan_substeps(solver, ts_host, dt0, max_steps)
     adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
-    config = _Config(solver, torque, torque_frame, principal, substeps, exact, rtol, atol, max_steps, adjoint, progress)
+    diagonal = substeps is not None and _is_concrete_diagonal(inertia)
+    config = _Config(
+        solver, torque, torque_frame, principal, substeps, diagonal, exact, rtol, atol, max_steps, adjoint, progress
+    )
     try:
         return _solve(config, q0, omega0, inertia, shared_inertia, ts, args, dt0)
     except TypeError as err:  # jvp of the compiled solve meets diffrax's custom_vjp adjoint
@@ -176,6 +184,7 @@ class _Config(NamedTuple):
     torque_frame: str
     principal: bool
     substeps: int | None
+    diagonal: bool  # a concrete diagonal tensor (the struct-of-arrays step reads its diagonal only)
     exact: bool
     rtol: float
     atol: float
@@ -190,7 +199,7 @@ def _solve(cfg: _Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> 
     used to dispatch (and compile) every array operation around ``diffeqsolve`` or the scan on
     its own (the suite's ``test_integrators.py``: 1092 compilations of single operations, 31 s;
     repeated eager calls 0.1-0.8 s each, now microseconds after the first)."""
-    solver, torque, torque_frame, principal, substeps, exact, rtol, atol, max_steps, adjoint, progress = cfg
+    solver, torque, torque_frame, principal, substeps, diagonal, exact, rtol, atol, max_steps, adjoint, progress = cfg
     adaptive = _has_error_estimate(solver)
     if exact:
         controller = diffrax.StepTo(ts)
@@ -202,8 +211,18 @@ def _solve(cfg: _Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> 
     batch = q0.shape[:-1]
     per_body_field = bool(batch) and not adaptive and not isinstance(solver, AbstractSplitting)
 
+    tableau = None if substeps is None else _component_tableau(solver)
+
     def solve(q, w, inertia_1, torque_fn):
         """One solve of a body, or of a whole batch stacked on the leading axis."""
+        if tableau is not None and substeps is not None:  # the Lie solvers' scan path, struct-of-arrays form
+            body_torque = None if torque is None else as_body_torque(torque, torque_frame)
+            if body_torque is not None and q.ndim > 1:
+                body_torque = jax.vmap(body_torque, in_axes=(None, 0, 0, None))
+            euler = struct_of_arrays.EulerEquations(inertia_1, body_torque, diagonal)
+            field = struct_of_arrays.rigid_body_field(euler)
+            qs, (ws,) = struct_of_arrays.solve(tableau, field, ts, q, (w,), args, substeps)
+            return qs, ws, None
         if principal:  # the splittings work in principal axes: rotate there and back
             moments, q_axes, r, q, w = _to_principal(inertia_1, q, w)
             inertia_1 = moments[..., None] * jnp.broadcast_to(jnp.eye(3, dtype=moments.dtype), moments.shape + (3,))
@@ -348,6 +367,23 @@ def _is_concrete_diagonal(inertia) -> bool:
     if _checks.is_traced(inertia):
         return False
     return not np.any(np.asarray(inertia) * (1 - np.eye(3)) != 0)
+
+
+def _component_tableau(solver) -> struct_of_arrays.Tableau | None:
+    """The tableau of a fixed-step Lie solver that the struct-of-arrays step runs exactly
+    (``LieEuler``, and ``AbstractRKMK`` subclasses with an explicit tableau that is not
+    first-same-as-last and their own ``lie_step``), or None (the solver's own step runs)."""
+    if type(solver) is LieEuler:
+        return struct_of_arrays.LIE_EULER
+    if (
+        isinstance(solver, AbstractRKMK)
+        and not _has_error_estimate(solver)
+        and not solver.tableau.fsal
+        and type(solver).lie_step is AbstractRKMK.lie_step
+    ):
+        order = solver.order(None)
+        return None if order is None else struct_of_arrays.Tableau.of(solver.tableau, order)
+    return None
 
 
 def _has_error_estimate(solver) -> bool:
