@@ -120,9 +120,20 @@ def _quest_eigenpair(k: Array, lam0: Array) -> tuple[Array, Array]:
     1e-5): float64, ``d = 1e-3``: 1.4e-5 rad with Newton alone, 8e-11 after one quotient (eigh:
     9e-11); float32, ``d = 3e-2``: 0.12 rad after one quotient, 6e-3 after two, 4e-5 after three
     (eigh: 2e-5). So one quotient in float64 and three in lower precision.
+
+    In lower precision the refinement starts from the upper bound ``lam0`` instead of Newton's
+    root. With a gap of ``d^2`` the quartic's rounding can move its two top roots together (or
+    off the real line): on one machine (XLA's default CPU flags, float32, ``d = 3e-2``) Newton
+    stopped at 3.00048 between ``lambda_2`` = 2.99940 and ``lambda_max`` = 3.00180, nearer
+    ``lambda_2``, and the quotients converged to ``lambda_2``'s eigenvector: 3.13 rad off. The
+    column at ``lam0 >= lambda_max`` is a step of inverse iteration shifted above
+    ``lambda_max``, which favours its eigenvector by ``(lambda_max - lambda_2)/(lam0 -
+    lambda_max)`` (exact for noise-free data, where ``lam0 = lambda_max``); the same problem
+    then gives 4.9e-5 rad on both machines' flag settings.
     """
-    lam = _quest_newton(k, lam0)
-    for _ in range(1 if k.dtype == jnp.float64 else 3):
+    float64 = k.dtype == jnp.float64
+    lam = _quest_newton(k, lam0) if float64 else lam0
+    for _ in range(1 if float64 else 3):
         v = _best_column(_adjugate(_shifted(k, lam)))
         lam = jnp.einsum("...i,...ij,...j->...", v, k, v)
     return lam, _best_column(_adjugate(_shifted(k, lam)))
