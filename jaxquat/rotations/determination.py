@@ -179,7 +179,9 @@ def quest(
     ``align_vectors(vectors_ref, vectors_body, weights)``). QUEST finds ``lambda_max`` by
     Newton's method on the characteristic quartic from ``lambda_0 = sum_i w_i |r_i| |b_i|``
     (an upper bound, exact for noise-free data; 6 steps) and the eigenvector as a column of
-    the adjugate ``adj(K - lambda_max I)``, whose columns are all proportional to it. Taking
+    the adjugate ``adj(K - lambda_max I)``, whose columns are all proportional to it, refined
+    by Rayleigh quotients (once in float64; three times in float32, starting from
+    ``lambda_0`` itself: rounding can put the quartic's root nearer the second eigenvalue). Taking
     the column with the largest diagonal entry replaces Shuster's method of sequential
     rotations: it has no singularity at 180 degrees. Canonical sign (``w >= 0``).
 
