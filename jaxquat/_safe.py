@@ -19,6 +19,8 @@ both sides of the switch.
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 from jax import Array
@@ -188,6 +190,19 @@ def x_minus_sin_over_cube(s: Array) -> Array:
         return (x - _trig.sin(x)) / (u * x)
 
     return _series_or_direct(s, _X_MINUS_SIN, direct, _JAC_SWITCH)
+
+
+def jacobian_inverse_coeff_truncated(order: int, s: Array | None = None) -> Any:
+    """The terms of :func:`jacobian_inverse_coeff`'s series (``_JINV``) that an RKMK method of
+    ``order`` p keeps in ``dexp^-1`` (Munthe-Kaas 1999): ``1/12`` (p <= 4), ``+ s/720``
+    (p = 5, 6), ``+ s^2/30240`` (p >= 7); ``s = |theta|^2``, needed only for p >= 5. Shared by
+    the row-form and the struct-of-arrays Lie steps, so their truncations cannot drift apart."""
+    coef: Any = 1.0 / 12.0
+    if order >= 5:
+        if s is None:
+            raise ValueError(f"an RKMK method of order {order} needs |theta|^2")
+        coef = coef + s / 720.0 + (s * s / 30240.0 if order >= 7 else 0.0)
+    return coef
 
 
 def jacobian_inverse_coeff(s: Array) -> Array:

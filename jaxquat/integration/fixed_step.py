@@ -2,9 +2,10 @@
 
 ``solve_fixed_steps`` is the fast path of :func:`jaxquat.simulate` for the splittings and the
 rollout of :func:`jaxquat.minimum_time_reorientation`; ``scan_steps`` is its scan for any step
-function (the struct-of-arrays Lie steps of ``simulate`` run on it). It drives the solver only through diffrax's
-public solver interface (``init`` once, then ``step``), so it serves every model and every
-fixed-step solver (the Lie solvers, the splittings, diffrax's own). Against
+function (the struct-of-arrays Lie steps of ``simulate`` run on it). ``solve_fixed_steps``
+drives the solver only through diffrax's public solver interface (``init`` once, then
+``step``), so it serves every model and every fixed-step solver (the Lie solvers, the
+splittings, diffrax's own). Against
 ``diffeqsolve`` with ``ConstantStepSize`` it drops the step-size controller, the event and
 save bookkeeping and the while loop, which a reverse pass must otherwise checkpoint:
 1.5x the throughput at 10^5 bodies (``docs/benchmarks.md``).

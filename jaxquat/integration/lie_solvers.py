@@ -279,10 +279,7 @@ def dexpinv(theta: Array, w: Array, order: int) -> Array:
     cross = jnp.cross(theta, w)
     if order == 2:
         return w + 0.5 * cross
-    coef = 1.0 / 12.0
-    if order >= 5:
-        t2 = _safe.norm_sq(theta)[..., None]
-        coef = coef + t2 / 720.0 + (t2 * t2 / 30240.0 if order >= 7 else 0.0)
+    coef = _safe.jacobian_inverse_coeff_truncated(order, _safe.norm_sq(theta)[..., None] if order >= 5 else None)
     return w + 0.5 * cross + coef * jnp.cross(theta, cross)
 
 

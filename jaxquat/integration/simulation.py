@@ -216,12 +216,10 @@ def _solve(cfg: _Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> 
     def solve(q, w, inertia_1, torque_fn):
         """One solve of a body, or of a whole batch stacked on the leading axis."""
         if tableau is not None and substeps is not None:  # the Lie solvers' scan path, struct-of-arrays form
-            body_torque = None if torque is None else as_body_torque(torque, torque_frame)
-            if body_torque is not None and q.ndim > 1:
-                body_torque = jax.vmap(body_torque, in_axes=(None, 0, 0, None))
+            # torque_fn is already vmapped over a stacked batch; the frame change broadcasts
+            body_torque = None if torque_fn is None else as_body_torque(torque_fn, torque_frame)
             euler = struct_of_arrays.EulerEquations(inertia_1, body_torque, diagonal)
-            field = struct_of_arrays.rigid_body_field(euler)
-            qs, (ws,) = struct_of_arrays.solve(tableau, field, ts, q, (w,), args, substeps)
+            qs, ws = struct_of_arrays.solve(tableau, euler, ts, q, w, args, substeps)
             return qs, ws, None
         if principal:  # the splittings work in principal axes: rotate there and back
             moments, q_axes, r, q, w = _to_principal(inertia_1, q, w)

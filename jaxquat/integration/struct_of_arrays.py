@@ -102,11 +102,9 @@ def dexpinv(theta: Comps, w: Comps, order: int) -> Comps:
         return w
     c1 = cross(theta, w)
     if order == 2:
-        return _add(w, _weighted([(0.5, c1)]))
-    coef: Any = 1.0 / 12.0
-    if order >= 5:
-        t2 = theta[0] * theta[0] + theta[1] * theta[1] + theta[2] * theta[2]
-        coef = coef + t2 / 720.0 + (t2 * t2 / 30240.0 if order >= 7 else 0.0)
+        return tuple(wi + 0.5 * a for wi, a in zip(w, c1))
+    t2 = theta[0] * theta[0] + theta[1] * theta[1] + theta[2] * theta[2] if order >= 5 else None
+    coef = _safe.jacobian_inverse_coeff_truncated(order, t2)
     c2 = cross(theta, c1)
     return tuple(wi + 0.5 * a + coef * b for wi, a, b in zip(w, c1, c2))
 
@@ -202,40 +200,18 @@ def rkmk_step(tab: Tableau, field: Callable, t0, h, q: Comps, z: Comps, args) ->
     return unit(multiply(q, exp(theta1))), z1
 
 
-def rigid_body_field(euler: Callable) -> Callable:
-    """The Lie-algebra field of ``(q, w_b)``, ``z = w_b``: ``(w_b, euler(t, q, w_b, args))``."""
-    return lambda t, q, w, args: (w, euler(t, q, w, args))
+def solve(tab: Tableau, euler: EulerEquations, ts: Array, q0: Array, w0: Array, args: Any, substeps: int):
+    """``(q, w_b)`` of the rigid body at every ``ts`` (leading axis ``len(ts)``), ``substeps``
+    equal RKMK steps of ``tab`` per interval, on the Lie-algebra field ``(w_b, euler(t, q, w_b,
+    args))``, driven by :func:`jaxquat.integration.fixed_step.scan_steps` (each step
+    rematerialised in reverse mode)."""
 
-
-def solve(
-    tab: Tableau,
-    field: Callable,
-    ts: Array,
-    q0: Array,
-    z0: Sequence[Array],
-    args: Any,
-    substeps: int,
-    *,
-    interval_args: Any = None,
-    checkpoint: bool = True,
-) -> tuple[Array, list[Array]]:
-    """The quaternion ``q`` and the other leaves ``z`` (each ``(..., k)``) at every ``ts``
-    (leading axis ``len(ts)``) under the Lie-algebra field ``field(t, q, z, args) -> (w_b, z')``
-    on components (``z`` the leaves' components, flattened in order), ``substeps`` equal steps
-    per interval, driven by :func:`jaxquat.integration.fixed_step.scan_steps` with its
-    ``interval_args`` and ``checkpoint``."""
-    sizes = [z.shape[-1] for z in z0]
+    def field(t, q, w, step_args):
+        return w, euler(t, q, w, step_args)
 
     def step(y, t0, t1, step_args, jump):
         del jump  # no solver state to refresh
         return rkmk_step(tab, field, t0, t1 - t0, y[0], y[1], step_args)
 
-    flat = tuple(c for z in z0 for c in split(z))
-    qs, zs = scan_steps(
-        step, ts, (split(q0), flat), args, substeps=substeps, interval_args=interval_args, checkpoint=checkpoint
-    )
-    out, start = [], 0
-    for k in sizes:
-        out.append(stack(zs[start : start + k]))
-        start += k
-    return stack(qs), out
+    qs, ws = scan_steps(step, ts, (split(q0), split(w0)), args, substeps=substeps)
+    return stack(qs), stack(ws)
