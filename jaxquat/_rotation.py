@@ -139,12 +139,32 @@ def to_rotvec(q: Array) -> Array:
     return _quaternion.scaled(2.0 * _safe.atan2_over_n(_safe.norm_sq(v), w), v)
 
 
+@jax.custom_jvp
 def from_rotvec(r: Array) -> Array:
-    """``(cos(|r|/2), sin(|r|/2) r / |r|)`` (series near ``r = 0``)."""
+    """``(cos(|r|/2), sin(|r|/2) r / |r|)`` (series near ``r = 0``).
+
+    The JVP is written per component (``ds = r . dr / 2``, then ``(dcos, dh r_i + h dr_i)`` with
+    ``h = sinc/2``), so reverse mode transposes element-wise operations: the gradient of the sum
+    at 10^6 (float32, 2-core CPU) took 15.6 ms against 35.5 ms when the row form's
+    ``scale[..., None] * r`` and ``norm_sq`` were transposed. The value keeps the row form (the
+    per-component form with a final stack ran 5.1 ms against 2.8 ms forward)."""
     s = 0.25 * _safe.norm_sq(r)  # (phi/2)^2
     sinc, w = _safe.sinc_cos_of_sq(s)
     half_sinc = 0.5 * sinc
     return _quaternion.scalar_vector(w, r, half_sinc)
+
+
+@from_rotvec.defjvp
+def _from_rotvec_jvp(primals, tangents):
+    (r,), (dr,) = primals, tangents
+    r0, r1, r2 = r[..., 0], r[..., 1], r[..., 2]
+    d0, d1, d2 = dr[..., 0], dr[..., 1], dr[..., 2]
+    s = 0.25 * _safe.norm_sq(r)  # as the value above, to the bit
+    ds = 0.5 * (r0 * d0 + r1 * d1 + r2 * d2)
+    (sinc, cos), (dsinc, dcos) = jax.jvp(_safe.sinc_cos_of_sq, (s,), (ds,))
+    h, dh = 0.5 * sinc, 0.5 * dsinc
+    tangent = jnp.stack([dcos, dh * r0 + h * d0, dh * r1 + h * d1, dh * r2 + h * d2], axis=-1)
+    return _quaternion.scalar_vector(cos, r, h), tangent
 
 
 def _jacobian(phi: Array, linear: float | Array, quadratic: Array) -> Array:
