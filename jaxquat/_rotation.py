@@ -130,13 +130,43 @@ def from_matrix_shepperd(m: Array) -> Array:
     return jnp.stack([c * scale for c in col], axis=-1)
 
 
+@jax.custom_jvp
 def to_rotvec(q: Array) -> Array:
     """The shortest rotation vector ``2 atan2(|v|, |w|) sign(w) v / |v|`` of ``q = (w, v)``
-    (series near the identity)."""
+    (series near the identity).
+
+    The JVP is written per component (``dn = 2 v . dv``, then ``2 (df v_i + f dv_i)`` with
+    ``f = atan2(|v|, w) / |v|``), so reverse mode transposes element-wise operations: the gradient
+    of the sum at 10^6 (2-core AMD EPYC, minimum of 20, same process) takes 60 ms against 79 ms
+    (float32) and 98 ms against 134 ms (float64) when the row form's ``canonicalize``,
+    ``norm_sq`` and ``scaled`` were transposed. (What remains is XLA fusing the whole backward,
+    the ``atan2`` included, into the pads that assemble the ``(..., 4)`` cotangent.)"""
     q = _quaternion.canonicalize(q)
     w = q[..., 0]
     v = q[..., 1:]
     return _quaternion.scaled(2.0 * _safe.atan2_over_n(_safe.norm_sq(v), w), v)
+
+
+@to_rotvec.defjvp
+def _to_rotvec_jvp(primals, tangents):
+    (q,), (dq,) = primals, tangents
+    sign = _quaternion.canonical_sign(*_quaternion.split(q))
+    w, x, y, z = (sign * c for c in _quaternion.split(q))  # as canonicalize, to the bit
+    dw, dx, dy, dz = (sign * c for c in _quaternion.split(dq))
+    nsq = x * x + y * y + z * z  # as norm_sq
+    dnsq = 2.0 * (x * dx + y * dy + z * dz)
+    # f and its two partial derivatives are primal values, stored once (not re-evaluated per
+    # output component); the tangent is then linear in (dnsq, dw) with stored coefficients.
+    # (One reverse pass per element for both partials: two forward passes, one per partial,
+    # took 19 ms against 4.5 ms at 10^6.)
+    partials = jax.value_and_grad(_safe.atan2_over_n, argnums=(0, 1))
+    for _ in range(nsq.ndim):
+        partials = jax.vmap(partials)
+    f, (f_nsq, f_w) = partials(nsq, w)
+    f2, a, b = _arrays.scalars(2.0 * f, 2.0 * f_nsq, 2.0 * f_w)
+    df2 = a * dnsq + b * dw
+    value = jnp.stack([f2 * x, f2 * y, f2 * z], axis=-1)
+    return value, jnp.stack([df2 * x + f2 * dx, df2 * y + f2 * dy, df2 * z + f2 * dz], axis=-1)
 
 
 @jax.custom_jvp
