@@ -285,7 +285,10 @@ def _run(cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, rate_bound, cones
         )
 
     flat = [jnp.reshape(a, (-1,) + a.shape[len(batch) :]) for a in (q0, qf, w0, wf, duration, u_ref, w_ref, h_ref)]
-    data = jax.vmap(data_of)(*flat)
+    # Strongly typed leaves: a weak-typed one (e.g. a bound broadcast from a Python float) is
+    # another cache key for the jitted solver, and retraced and recompiled it (18 s for the
+    # suite's 10-interval problem, whose bound came once as an array and once as a list).
+    data = jax.tree.map(lambda a: jnp.asarray(a, a.dtype), jax.vmap(data_of)(*flat))
     keys = jax.vmap(lambda k: jax.random.fold_in(jax.random.PRNGKey(seed), k))(jnp.arange(starts))
     out = solve(data, cfg, tol, max_iter, keys, init)
     out = jax.tree.map(lambda a: jnp.reshape(a, batch + a.shape[1:]), out)
