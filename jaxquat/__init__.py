@@ -170,6 +170,9 @@ from .control.interior_point import (
 from .control.transcription import (
     ConstrainedReorientation as ConstrainedReorientation,
 )
+from .control.controlled_model import (
+    ControlledModel as ControlledModel,
+)
 from .control.optimal_control import (
     ReactionWheels as ReactionWheels,
     minimum_energy_reorientation as minimum_energy_reorientation,
@@ -314,6 +317,7 @@ __all__ = [
     "ShootingSolution",
     "solve_shooting",
     "ConstrainedReorientation",
+    "ControlledModel",
     "ReactionWheels",
     "minimum_energy_reorientation",
     "minimum_fuel_reorientation",

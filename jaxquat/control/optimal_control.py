@@ -22,6 +22,8 @@ from jaxtyping import ArrayLike, Float
 from .. import _checks
 from ..manifold.lie import minus
 from ..mechanics.inertia import validated
+from . import controlled_model
+from .controlled_model import ControlledModel
 from .transcription import Config, ConstrainedReorientation, Data, Warm, solve
 
 __all__ = [
@@ -136,6 +138,7 @@ def _options(tol, max_iter, throw, starts, seed, init) -> tuple:
                 f"argument 'init' must be a single (unbatched) result, got time shaped {np.shape(init.time)}"
             )
         h = getattr(init, "wheel_momentum", None)
+        h = getattr(init, "extra", None) if h is None else h
         init = Warm(*(jnp.asarray(a) for a in (init.time, init.ts, init.q, init.omega, init.torque)))
         init = init._replace(h=None if h is None else jnp.asarray(h))
     return tol, max_iter, throw, starts, int(seed), init
@@ -246,16 +249,24 @@ def _wheels(wheels, dtype) -> tuple | None:
     return jnp.asarray(axes, dtype), limit(wheels.torque_limit, "torque_limit"), h_limit, jnp.asarray(h0, dtype)
 
 
-def _run(cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, rate_bound, cones, weights, fractions, options, wheels):
+def _run(
+    cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, rate_bound, cones, weights, fractions, options, wheels, model
+):
     """Solve, and raise when a problem did not converge (``throw``). ``wheels`` the validated
-    ``(axes, torque_limit, momentum_limit or None, momentum0)`` or ``None``."""
+    ``(axes, torque_limit, momentum_limit or None, momentum0)`` or ``None``; ``model`` the
+    validated user model (``controlled_model.Model``) or ``None``."""
     tol, max_iter, throw, starts, seed, init = options
     widest = None if fractions is None else float(np.max(fractions))
     check_resolution(duration, q0, qf, w0, wf, cfg.intervals, cfg.substeps, widest)
     dtype = q0.dtype
     batch = q0.shape[:-1]
     inf = jnp.asarray(jnp.inf, dtype)
-    if wheels is None:
+    args = None
+    if model is not None:  # the extra states z in the wheel momenta's places
+        axes, h0, args = jnp.zeros((0, 3), dtype), model.z0, model.args
+        h_bound = inf * jnp.ones_like(h0) if model.bound is None else model.bound
+        h_ref = jnp.full_like(w_ref, model.scale)
+    elif wheels is None:
         axes, h0, h_bound = jnp.zeros((0, 3), dtype), jnp.zeros((0,), dtype), jnp.zeros((0,), dtype)
         h_ref = jnp.ones_like(w_ref)
     else:
@@ -282,6 +293,7 @@ def _run(cfg, inertia, q0, qf, w0, wf, duration, u_ref, w_ref, rate_bound, cones
             h0,
             hr,
             h_bound,
+            args,
         )
 
     flat = [jnp.reshape(a, (-1,) + a.shape[len(batch) :]) for a in (q0, qf, w0, wf, duration, u_ref, w_ref, h_ref)]
@@ -355,6 +367,7 @@ def optimal_reorientation(
     init=None,
     mesh=None,
     wheels: ReactionWheels | None = None,
+    model: ControlledModel | None = None,
 ) -> ConstrainedReorientation:
     """Least ``time_weight T + energy_weight int |u|^2 dt + fuel_weight int sum_i |u_i| dt`` taking
     ``(q0, omega0)`` to ``(qf, omegaf)``: any weighted mix of the three objectives.
@@ -401,6 +414,10 @@ def optimal_reorientation(
             bounds their momenta at every integration step) instead of a body torque
             (``torque_bound`` must then be ``None``); ``inertia`` is the spacecraft's without the
             wheels' axial inertias.
+        model: a :class:`ControlledModel`: the body follows the user's dynamics ``field(y, u,
+            args)`` with its ``model.controls`` inputs (bounded by ``torque_bound``, then shaped
+            ``(n,)`` or a scalar) instead of the torqued rigid body; ``inertia`` then sets only
+            the scales and the guess (:class:`ControlledModel`). Not with ``wheels``.
 
     Returns:
         A :class:`ConstrainedReorientation` with leading axes the batch of the boundary states:
@@ -419,6 +436,8 @@ def optimal_reorientation(
     free = duration is None
     if wheels is not None and torque_bound is not None:
         raise ValueError("pass either 'torque_bound' (a body torque) or 'wheels' (whose torque_limit bounds them)")
+    if wheels is not None and model is not None:
+        raise ValueError("pass either 'wheels' or 'model' (a ControlledModel may include the wheels)")
     bounded = torque_bound is not None or wheels is not None
     if free and (weights[0] == 0 or not bounded):
         raise ValueError("a free final time (duration=None) needs time_weight > 0 and a torque_bound")
@@ -427,8 +446,28 @@ def optimal_reorientation(
     if weights[2] > 0 and not bounded:
         raise ValueError("argument 'torque_bound' is required with fuel_weight > 0 (the l1 optimum is impulsive)")
     inertia, q0, qf, w0, wf, bound, rate_bound, cones = _prepare(
-        inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out, keep_in
+        inertia, q0, qf, omega0, omegaf, None if model is not None else torque_bound, rate_bound, keep_out, keep_in
     )
+    if model is not None:
+        return _model_problem(
+            model,
+            torque_bound,
+            free,
+            duration,
+            inertia,
+            q0,
+            qf,
+            w0,
+            wf,
+            rate_bound,
+            cones,
+            weights,
+            fractions,
+            intervals,
+            substeps,
+            _options(tol, max_iter, throw, starts, seed, init),
+            init,
+        )
     spec = _wheels(wheels, jnp.result_type(q0))
     if spec is not None:
         # the body torques the wheels can give, per body axis: sum_i u_max_i |a_i|
@@ -454,7 +493,85 @@ def optimal_reorientation(
         momentum_bounded=spec is not None and spec[2] is not None,
     )
     options = _options(tol, max_iter, throw, starts, seed, init)
-    return _run(cfg, inertia, q0, qf, w0, wf, T, u_ref, w_ref, rate_bound, cones, weights, fractions, options, spec)
+    return _run(
+        cfg, inertia, q0, qf, w0, wf, T, u_ref, w_ref, rate_bound, cones, weights, fractions, options, spec, None
+    )
+
+
+def _model_bound(torque_bound, n: int, dtype):
+    """The controls' bound ``(n,)`` of a user model, checked, or ``None``."""
+    if torque_bound is None:
+        return None
+    b = np.asarray(torque_bound, np.float64)
+    b = np.full(n, b) if b.ndim == 0 else b
+    if b.shape != (n,) or not (np.all(b > 0) and np.all(np.isfinite(b))):
+        raise ValueError(
+            f"argument 'torque_bound' must bound the model's {n} controls: positive and finite, a scalar or "
+            f"shaped ({n},), got {b}"
+        )
+    return jnp.asarray(b, dtype)
+
+
+def _model_problem(
+    model,
+    torque_bound,
+    free,
+    duration,
+    inertia,
+    q0,
+    qf,
+    w0,
+    wf,
+    rate_bound,
+    cones,
+    weights,
+    fractions,
+    intervals,
+    substeps,
+    options,
+    init,
+):
+    """:func:`optimal_reorientation` for a user model: its scales from the control matrix
+    ``B = dw'/du`` at each problem's initial state (the body torques ``J B u`` the controls
+    exert), its configuration, the solve."""
+    dtype = jnp.result_type(q0)
+    spec = controlled_model.validated(model, dtype)
+    n = spec.controls
+    bound = _model_bound(torque_bound, n, dtype)
+    batch = jnp.shape(q0)[:-1]
+
+    def torque_map(q, w):  # (3, n): the body torques per unit control at the initial state
+        return inertia @ controlled_model.control_matrix(spec.field, (q, w, spec.z0), spec.args, n)[0]
+
+    flat = jax.vmap(torque_map)(jnp.reshape(q0, (-1, 4)), jnp.reshape(w0, (-1, 3)))
+    JB = jnp.reshape(flat, batch + (3, n))
+    # the body torque the bounded controls can give per body axis, |J B| b (b for a torqued body)
+    body_bound = None if bound is None else jnp.abs(JB) @ bound
+    T, u_ref, w_ref = scales(inertia, q0, qf, w0, wf, body_bound if free else _check_duration(duration), min_time=free)
+    if bound is not None:
+        u_ref = jnp.broadcast_to(bound, batch + (n,))
+    else:  # the controls that give the eigenaxis profile's peak torque, at most
+        rows = jnp.max(jnp.linalg.norm(jnp.linalg.pinv(JB), axis=-1), axis=-1)
+        u_ref = jnp.broadcast_to((u_ref[..., 0] * rows)[..., None], batch + (n,))
+    if init is not None and getattr(init, "extra", None) is None:
+        raise ValueError("argument 'init' must be a result of a model (its extra states) when model is given")
+    cfg = Config(
+        intervals,
+        substeps,
+        free,
+        bound is not None,
+        rate_bound is not None,
+        len(cones),
+        fuel=bool(weights[2] > 0),
+        energy=bool(weights[1] > 0),
+        uniform=fractions is None,
+        momentum_bounded=spec.bound is not None,
+        model=spec.field,
+        model_controls=n,
+    )
+    return _run(
+        cfg, inertia, q0, qf, w0, wf, T, u_ref, w_ref, rate_bound, cones, weights, fractions, options, None, spec
+    )
 
 
 _SHARED = (
@@ -474,6 +591,7 @@ _SHARED = (
     "init",
     "mesh",
     "wheels",
+    "model",
 )
 
 
@@ -504,6 +622,7 @@ def minimum_energy_reorientation(
     init=None,
     mesh=None,
     wheels: ReactionWheels | None = None,
+    model: ControlledModel | None = None,
 ) -> ConstrainedReorientation:
     """Least ``int_0^T |u|^2 dt`` taking ``(q0, omega0)`` to ``(qf, omegaf)`` in the fixed time ``duration``.
 
@@ -588,6 +707,7 @@ def minimum_fuel_reorientation(
     init=None,
     mesh=None,
     wheels: ReactionWheels | None = None,
+    model: ControlledModel | None = None,
 ) -> ConstrainedReorientation:
     """Least fuel ``int_0^T sum_i |u_i| dt`` taking ``(q0, omega0)`` to ``(qf, omegaf)`` in the fixed
     time ``duration``, with ``|u_i| <= torque_bound[i]`` (required: without a bound the l1
@@ -631,6 +751,7 @@ def constrained_minimum_time(
     init=None,
     mesh=None,
     wheels: ReactionWheels | None = None,
+    model: ControlledModel | None = None,
 ) -> ConstrainedReorientation:
     """Least final time ``T`` taking ``(q0, omega0)`` to ``(qf, omegaf)`` with ``|u_i| <= torque_bound[i]``.
 

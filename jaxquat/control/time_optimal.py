@@ -73,6 +73,7 @@ from .optimal_control import (
     check_starts,
     constrained_minimum_time,
 )
+from .controlled_model import ControlledModel
 from .transcription import ConstrainedReorientation, held_torque_states
 
 __all__ = ["Reorientation", "minimum_time_reorientation"]
@@ -333,6 +334,7 @@ def minimum_time_reorientation(
     mesh=None,
     method: str = "interior_point",
     wheels: ReactionWheels | None = None,
+    model: ControlledModel | None = None,
 ) -> Reorientation | ConstrainedReorientation:
     """Shortest time ``T`` and bounded body torque taking ``(q0, omega0)`` to ``(qf, omegaf)``.
 
@@ -404,6 +406,8 @@ def minimum_time_reorientation(
         wheels: a :class:`jaxquat.ReactionWheels` turning the body instead of a body torque
             (then ``torque_bound=None``; interior point only; see
             :func:`jaxquat.optimal_reorientation`).
+        model: a :class:`jaxquat.ControlledModel`, the user's dynamics with its own controls
+            (bounded by ``torque_bound``, ``(n,)`` or a scalar; interior point only).
 
     Returns:
         A :class:`jaxquat.ConstrainedReorientation` (interior point) or a
@@ -442,9 +446,11 @@ def minimum_time_reorientation(
             init=init,
             mesh=mesh,
             wheels=wheels,
+            model=model,
         )
-    if wheels is not None:
-        raise ValueError("argument 'wheels' needs method='interior_point' (the default)")
+    for name, given in (("wheels", wheels), ("model", model)):
+        if given is not None:
+            raise ValueError(f"argument '{name}' needs method='interior_point' (the default)")
     if rate_bound is not None or len(keep_out) > 0 or len(keep_in) > 0:
         raise ValueError(
             "method='single_shooting' handles torque bounds only; rate_bound, keep_out and keep_in need "

@@ -30,7 +30,7 @@ solver closes the defects.
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -40,6 +40,7 @@ from .. import _arrays, _quaternion, _rates
 from ..integration.fixed_step import solve_fixed_steps
 from ..integration.lie_solvers import RKMK4, BodyRateTerm
 from ..manifold.lie import minus, plus
+from .controlled_model import control_matrix, lie_field, rates
 from .interior_point import ShootingProblem, solve_shooting
 
 __all__ = ["ConstrainedReorientation"]
@@ -63,7 +64,9 @@ class ConstrainedReorientation(NamedTuple):
     With ``wheels=`` (a reaction-wheel spacecraft) the controls are the ``n`` wheel motor torques:
     ``torque`` is ``(len(ts), n)``, ``controls`` and ``switching`` ``(N, n)``, ``costates``
     ``(N, 7 + n)``, and ``wheel_momentum`` ``(len(ts), n)`` the wheels' axial momenta on ``ts``
-    (``None`` for the rigid body).
+    (``None`` for the rigid body). With ``model=`` (a :class:`jaxquat.ControlledModel`) the
+    controls are the model's ``n`` inputs (shapes as with wheels), ``costates`` ``(N, 7 + m)``,
+    and ``extra`` ``(len(ts), m)`` its extra states ``z`` on ``ts`` (``None`` otherwise).
     """
 
     time: Array
@@ -81,6 +84,7 @@ class ConstrainedReorientation(NamedTuple):
     converged: Array
     start_costs: Array
     wheel_momentum: Array | None = None
+    extra: Array | None = None
 
 
 _PERTURBATION = 0.2  # scaled torque perturbation of the initial guess
@@ -103,6 +107,7 @@ class Data(NamedTuple):
     h0: Array  # (n,) initial wheel momenta
     h_ref: Array  # wheel momentum scale
     momentum_bound: Array  # (n,) (inf: none)
+    model_args: Any = None  # a user model's args (model=): data, so they do not recompile
 
 
 class Config(NamedTuple):
@@ -117,11 +122,15 @@ class Config(NamedTuple):
     uniform: bool = True  # equal intervals (else data.fractions)
     wheels: int = 0  # reaction wheels driving the body (0: a body torque, 3 controls)
     momentum_bounded: bool = False  # |h_i| <= momentum_bound at every integration step
+    # A user model (ControlledModel): its field (hashed by identity) and number of controls; the
+    # extra states z take the wheel momenta's places in the data (h0, h_ref, momentum_bound).
+    model: Any = None
+    model_controls: int = 0
 
 
 def _controls_of(cfg: Config) -> int:
-    """The number of physical controls: the wheel torques, or the body torque's 3."""
-    return cfg.wheels or 3
+    """The number of physical controls: a user model's, the wheel torques, or the body torque's 3."""
+    return cfg.model_controls if cfg.model is not None else (cfg.wheels or 3)
 
 
 def _grid(n: int, substeps: int, fractions, dtype) -> Array:
@@ -183,8 +192,11 @@ def _held(solver, field, y0, time, u, substeps: int, fractions):
 
 def _states(cfg: Config, data: Data, x0, time, u, substeps: int, fractions=None):
     """``(qs, ws, hs)`` from the physical start ``x0 = (q, w, h)`` through the held controls
-    ``u``: the rigid body (``hs`` empty) or the wheels."""
+    ``u``: the rigid body (``hs`` empty), the wheels, or a user model (``hs`` its ``z``)."""
     q0, w0, h0 = x0
+    if cfg.model is not None:
+        field = lie_field(cfg.model, data.model_args)
+        return _held(RKMK4(quaternions=(True, False, False)), field, (q0, w0, h0), time, u, substeps, fractions)
     if not cfg.wheels:
         qs, ws = held_torque_states(data.inertia, q0, w0, time, u, substeps, fractions)
         return qs, ws, jnp.zeros(ws.shape[:-1] + (0,), ws.dtype)
@@ -272,8 +284,38 @@ def _cached_problem(cfg: Config) -> ShootingProblem:
     return _PROBLEMS[cfg]
 
 
+def _profile(min_time: bool, s):
+    """The eigenaxis reference profile at normalised times ``s``: the angle's fraction, the rate
+    and the acceleration (per unit angle, in units of the duration): bang-bang for minimum time,
+    the cubic minimum-energy one otherwise."""
+    if min_time:
+        return (
+            jnp.where(s < 0.5, 2 * s * s, 1 - 2 * (1 - s) ** 2),
+            jnp.where(s < 0.5, 4 * s, 4 * (1 - s)),
+            jnp.where(s < 0.5, 4.0, -4.0),
+        )
+    return 3 * s * s - 2 * s**3, 6 * s * (1 - s), 6 - 12 * s
+
+
+def _model_guess(cfg: Config, data: Data, qm, wm, am):
+    """A user model's guess along the eigenaxis profile (midpoint attitudes, rates and
+    accelerations ``(N, .)``): per interval the least-squares controls ``B^+ (a - w'(u = 0))``
+    at the midpoint, and ``z`` stepped by explicit Euler. Returns the node ``z`` ``(N, m)`` and
+    the controls ``(N, n)``."""
+    lengths = data.duration * data.fractions
+
+    def interval(z, xs):
+        q, w, a, h = xs
+        B, w0 = control_matrix(cfg.model, (q, w, z), data.model_args, cfg.model_controls)
+        u = jnp.linalg.pinv(B) @ (a - w0)
+        z = z + h * rates(cfg.model, (q, w, z), u, data.model_args)[2]
+        return z, (z, u)
+
+    return jax.lax.scan(interval, data.h0, (qm, wm, am, lengths))[1]
+
+
 def initial_guess(cfg: Config, data: Data):
-    """The eigenaxis initial guess: nodes ``(N, 7)``, scaled controls ``(N, 3)``."""
+    """The eigenaxis initial guess: nodes ``(N, 7 + m)``, scaled controls ``(N, n)``."""
     N = cfg.intervals
     dtype = data.q0.dtype
     rotvec = minus(data.qf, data.q0)
@@ -283,22 +325,17 @@ def initial_guess(cfg: Config, data: Data):
     else:
         s = jnp.cumsum(data.fractions)
         sm = s - data.fractions / 2
-    if cfg.min_time:
-        shape = jnp.where(s < 0.5, 2 * s * s, 1 - 2 * (1 - s) ** 2)
-        rate = jnp.where(sm < 0.5, 4 * sm, 4 * (1 - sm))
-        accel = jnp.where(sm < 0.5, 4.0, -4.0)
-        rate_n = jnp.where(s < 0.5, 4 * s, 4 * (1 - s))
-    else:
-        shape = 3 * s * s - 2 * s**3
-        rate = 6 * sm * (1 - sm)
-        accel = 6 - 12 * sm
-        rate_n = 6 * s * (1 - s)
+    shape, rate_n, _ = _profile(cfg.min_time, s)
+    shape_m, rate, accel = _profile(cfg.min_time, sm)
     qs = jax.vmap(lambda a: plus(data.q0, a * rotvec))(shape)
     qs = qs.at[-1].set(data.qf)
     ws = rate_n[:, None] * rotvec[None] / data.duration + (1 - s)[:, None] * data.w0[None] + s[:, None] * data.wf[None]
     wm = rate[:, None] * rotvec[None] / data.duration + (1 - sm)[:, None] * data.w0[None] + sm[:, None] * data.wf[None]
     am = accel[:, None] * rotvec[None] / data.duration**2 + (data.wf - data.w0)[None] / data.duration
-    if cfg.wheels:
+    if cfg.model is not None:
+        # the model's own dynamics and control matrix at the profile's midpoints
+        hs, u = _model_guess(cfg, data, jax.vmap(lambda a: plus(data.q0, a * rotvec))(shape_m), wm, am)
+    elif cfg.wheels:
         # Wheel momenta from the body-frame momentum balance without its rotation,
         # A^T (h - h0) = -J (w - w0), and the wheel torques A^T u = -(J a + w x (J w + A^T h)).
         spread = jnp.linalg.pinv(data.axes.T)  # (n, 3)
@@ -337,7 +374,11 @@ def _resampled(cfg: Config, data: Data, init):
     i, f = at(edges[1:])
     qs = (1 - f) * q[i] + f * q[i + 1]
     ws = (1 - f) * w[i] + f * w[i + 1]
-    hs = (1 - f) * init.h[i] + f * init.h[i + 1] if cfg.wheels else jnp.zeros((ws.shape[0], 0), dtype)
+    hs = (
+        (1 - f) * init.h[i] + f * init.h[i + 1]
+        if cfg.wheels or cfg.model is not None
+        else jnp.zeros((ws.shape[0], 0), dtype)
+    )
     X = jnp.concatenate([qs / jnp.linalg.norm(qs, axis=-1, keepdims=True), ws / data.w_ref, hs / data.h_ref], axis=1)
     p = jnp.reshape(jnp.asarray(init.time, dtype) / data.duration, (1,)) if cfg.min_time else jnp.zeros((0,), dtype)
     return X, u / data.u_ref[None], p
@@ -451,6 +492,7 @@ def _best(cfg: Config, problem: ShootingProblem, data: Data, sols) -> Constraine
         sol.converged,
         start_costs,
         hs if cfg.wheels else None,
+        hs if cfg.model is not None else None,
     )
 
 
