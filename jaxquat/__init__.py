@@ -180,6 +180,8 @@ from .control.optimal_control import (
     constrained_minimum_time as constrained_minimum_time,
     optimal_reorientation as optimal_reorientation,
     refine_mesh as refine_mesh,
+    align_mesh as align_mesh,
+    switch_times as switch_times,
 )
 from .control.time_optimal import (
     Reorientation as Reorientation,
@@ -323,6 +325,8 @@ __all__ = [
     "minimum_fuel_reorientation",
     "optimal_reorientation",
     "refine_mesh",
+    "align_mesh",
+    "switch_times",
     "constrained_minimum_time",
     "Reorientation",
     "minimum_time_reorientation",
