@@ -18,8 +18,8 @@ solution (jaxquat.euler_poinsot in float64) and the largest | |q| - 1 |.
 Also: the cost of autodiff against the forward pass (reverse mode: jax.grad of a
 final-attitude loss; forward mode: one jvp tangent, and jacfwd with 3 columns), float32 and
 float64, at batches 10^3 and 10^5, for simulate and the hand RK4 (checkpointed as simulate's
-scan path is), and compile time (time to the first result of simulate, and of one optax step
-through it).
+scan path is), compile time (time to the first result of simulate, and of one optax step
+through it), and import time (import jaxquat, its first rotation function, its first simulate).
 
     python benchmarks/simulation.py [--batches 1 1000 100000] [--grad-batches 1000 100000]
                                     [--write docs/benchmarks.md]
@@ -28,6 +28,8 @@ through it).
 from __future__ import annotations
 
 import argparse
+import subprocess
+import sys
 import time
 
 import jax
@@ -236,7 +238,24 @@ def compile_times():
     return first_sim, first_step
 
 
-def markdown(rows, grad_rows, compiled):
+def import_times(repeats=5):
+    """What ``import jaxquat`` adds to ``import jax`` (fresh interpreters, least of ``repeats``), and
+    the first use of a rotation (``jq.multiply``: jaxtyping and the rotation modules) and of
+    ``jq.simulate`` (diffrax, equinox, optimistix: ``jaxquat/__init__.pyi``'s names load lazily)."""
+    code = (
+        "import time; t0 = time.perf_counter(); import jax, jax.numpy; t1 = time.perf_counter(); "
+        "import jaxquat as jq; t2 = time.perf_counter(); jq.multiply; t3 = time.perf_counter(); "
+        "jq.simulate; t4 = time.perf_counter(); print(t1 - t0, t2 - t1, t3 - t2, t4 - t3)"
+    )
+    runs = [
+        [float(x) for x in subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+         .stdout.split()]
+        for _ in range(repeats)
+    ]  # fmt: skip
+    return np.min(np.asarray(runs), axis=0)
+
+
+def markdown(rows, grad_rows, compiled, imported):
     first_sim, first_step = compiled
     by = {(n, name): rate for n, name, rate, *_ in rows}
     lines = [
@@ -270,6 +289,10 @@ def markdown(rows, grad_rows, compiled):
         "",
         f"Compile time (time to first result, batch 1000): `simulate` {first_sim:.2f} s; one optax Adam step "
         f"through it (forward + reverse) {first_step:.2f} s.",
+        "",
+        f"Import time (fresh interpreters, least of 5): `import jax` {imported[0]:.2f} s; `import jaxquat` adds "
+        f"{imported[1] * 1e3:.0f} ms; the first rotation function (`jq.multiply`) {imported[2] * 1e3:.0f} ms more, the "
+        f"first `jq.simulate` (diffrax, equinox, optimistix) {imported[3]:.2f} s more.",
     ]
     return "\n".join(lines) + "\n"
 
@@ -282,7 +305,7 @@ def main(argv=None):
     ap.add_argument("--grad-batches", type=int, nargs="+", default=[1000, 100_000])
     a = ap.parse_args(argv)
     rows = throughput(a.batches, a.repeats)
-    md = markdown(rows, gradient_table(a.grad_batches, a.repeats), compile_times())
+    md = markdown(rows, gradient_table(a.grad_batches, a.repeats), compile_times(), import_times())
     print(md)
     if a.write:
         write_section(a.write, "simulation", "## Simulation throughput, gradient cost, compile time\n\n" + md)

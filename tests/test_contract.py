@@ -575,6 +575,10 @@ def test_every_public_name_is_in_the_contract():
         "minimum_fuel_reorientation",
         "optimal_reorientation",
         "refine_mesh",
+        "ControlledModel",
+        # NumPy functions of a result (the mesh between solves): tests/test_time_optimal.py
+        "switch_times",
+        "align_mesh",
         # the MEKF (a filter over a time axis, with its own jit/vmap/grad tests): tests/test_mekf.py
         "FilterState",
         "FilterUpdate",

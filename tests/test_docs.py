@@ -95,11 +95,12 @@ def test_the_module_map_lists_each_module_s_imports():
 
 
 def test_the_package_re_exports_every_module_name_by_name():
-    """``jaxquat/__init__.py`` lists its re-exports explicitly (``name as name``, for type
-    checkers); they must be exactly the modules' own ``__all__``, no name twice or missing."""
+    """``jaxquat/__init__.pyi`` lists its re-exports explicitly (``name as name``, for type
+    checkers and the lazy loader); they must be exactly the modules' own ``__all__``, no name
+    twice or missing."""
     import importlib
 
-    text = (ROOT / "jaxquat" / "__init__.py").read_text()
+    text = (ROOT / "jaxquat" / "__init__.pyi").read_text()
     modules = re.findall(r"^from \.([\w.]+) import \(", text, re.M)
     exported = [name for m in modules for name in importlib.import_module(f"jaxquat.{m}").__all__]
     assert len(exported) == len(set(exported))
@@ -111,6 +112,24 @@ def test_the_package_re_exports_every_module_name_by_name():
             (n, n) for n in importlib.import_module(f"jaxquat.{m}").__all__
         }, m
     assert all(hasattr(jq, name) for name in jq.__all__)
+
+
+def test_import_jaxquat_imports_a_module_on_first_use_of_its_names():
+    """``import jaxquat`` imports none of its modules (``lazy_loader``): the rotations do not
+    import diffrax, equinox or optax; ``simulate`` does. In a fresh interpreter."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, jaxquat as jq\n"
+        "print(sorted(m for m in sys.modules if m.startswith('jaxquat.')))\n"
+        "jq.multiply, jq.to_rotvec, jq.slerp, jq.mekf\n"
+        "print(sorted(m for m in ('diffrax', 'equinox', 'optax', 'optimistix') if m in sys.modules))\n"
+        "jq.simulate\n"
+        "print('diffrax' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split("\n")[:3] == ["[]", "[]", "True"], out
 
 
 def test_no_module_imports_another_module_s_private_names():
@@ -130,8 +149,8 @@ def test_no_module_imports_another_module_s_private_names():
 
 def test_the_api_reference_covers_every_public_module():
     """docs/api/*.md (built by ``make docs``, mkdocstrings) renders each module that
-    ``jaxquat/__init__.py`` re-exports, once, and mkdocs.yml's nav lists every page."""
-    text = (ROOT / "jaxquat" / "__init__.py").read_text()
+    ``jaxquat/__init__.pyi`` re-exports, once, and mkdocs.yml's nav lists every page."""
+    text = (ROOT / "jaxquat" / "__init__.pyi").read_text()
     modules = set(re.findall(r"^from \.([\w.]+) import \(", text, re.M))
     pages = sorted((ROOT / "docs" / "api").glob("*.md"))
     rendered = [m for page in pages for m in re.findall(r"^::: jaxquat\.([\w.]+)$", page.read_text(), re.M)]
