@@ -499,14 +499,16 @@ def _gyrostat(y, u, args):
 def test_wheels_as_a_user_model_reach_the_built_in_minimum_time(wheel_bilimoria_wie):
     """Minimum time with the model's extra states bounded (|h_i| <= 1.5, binding) and the torque
     bound on its controls: from one start it reaches the built-in wheels' optimum (8 starts)
-    to 1e-8, and the same without binding (the free optimum's wheel momentum peaks at 1.627).
-    Measured: 3.2706024 and 3.2536400."""
+    to 1e-8, and warm-started from it, the same without binding (the free optimum's wheel
+    momentum peaks at 1.627). Measured: 3.2706024 and 3.2536400."""
     free, bound = wheel_bilimoria_wie
     qf = np.array([0.0, 1.0, 0.0, 0.0])
     idle = dict(rate_bound=100.0, keep_out=[(np.array([1.0, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0]), 0.0175)])
+    r = None
     for limit, ref in ((1.5, bound), (10.0, free)):
         model = jq.ControlledModel(_gyrostat, 3, extra0=np.zeros(3), extra_bound=limit, args=(np.eye(3),) * 3)
-        r = jq.minimum_time_reorientation(np.eye(3), 1.0, Q0, qf, intervals=N, starts=1, model=model, **idle)
+        # the second warm-started from the first (its extra states resampled with the rest)
+        r = jq.minimum_time_reorientation(np.eye(3), 1.0, Q0, qf, intervals=N, starts=1, model=model, init=r, **idle)
         assert bool(r.converged) and float(r.violation) < 1e-9
         np.testing.assert_allclose(float(r.time), float(ref.time), rtol=1e-8)
         assert np.max(np.abs(np.asarray(r.extra))) <= limit * (1 + 1e-8)
@@ -553,8 +555,11 @@ def test_a_model_needs_the_interior_point_and_a_model_result_to_warm_start():
         *(np.zeros(shape) for shape in [(), (n + 1,), (n + 1, 4), (n + 1, 3), (n + 1, 3), (n, 3)]),
         *(np.zeros(()) for _ in range(8)),
     )
-    with pytest.raises(ValueError, match="'init' must be a result of a model"):
+    with pytest.raises(ValueError, match="'init' must be a result of a model with 1 extra states"):
         jq.minimum_energy_reorientation(np.eye(3), Q0, QF, 2.0, model=_damped(np.eye(3), 0.0), init=plain)
+    with pytest.raises(ValueError, match="'init' must be a result of a model with 1 extra states"):
+        two = plain._replace(extra=np.zeros((n + 1, 2)))
+        jq.minimum_energy_reorientation(np.eye(3), Q0, QF, 2.0, model=_damped(np.eye(3), 0.0), init=two)
 
 
 # ------------------------------------------------------------------ weighted mixes

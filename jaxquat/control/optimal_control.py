@@ -514,24 +514,10 @@ def optimal_reorientation(
         inertia, q0, qf, omega0, omegaf, None if model is not None else torque_bound, rate_bound, keep_out, keep_in
     )
     if model is not None:
+        boundary = (inertia, q0, qf, w0, wf, rate_bound, cones)
+        options = _options(tol, max_iter, throw, starts, seed, init)
         return _model_problem(
-            model,
-            torque_bound,
-            free,
-            duration,
-            inertia,
-            q0,
-            qf,
-            w0,
-            wf,
-            rate_bound,
-            cones,
-            weights,
-            fractions,
-            intervals,
-            substeps,
-            _options(tol, max_iter, throw, starts, seed, init),
-            init,
+            model, torque_bound, duration, boundary, (intervals, substeps, fractions), weights, options
         )
     spec = _wheels(wheels, jnp.result_type(q0))
     if spec is not None:
@@ -577,28 +563,15 @@ def _model_bound(torque_bound, n: int, dtype):
     return jnp.asarray(b, dtype)
 
 
-def _model_problem(
-    model,
-    torque_bound,
-    free,
-    duration,
-    inertia,
-    q0,
-    qf,
-    w0,
-    wf,
-    rate_bound,
-    cones,
-    weights,
-    fractions,
-    intervals,
-    substeps,
-    options,
-    init,
-):
+def _model_problem(model, torque_bound, duration, boundary, grid, weights, options):
     """:func:`optimal_reorientation` for a user model: its scales from the control matrix
     ``B = dw'/du`` at each problem's initial state (the body torques ``J B u`` the controls
-    exert), its configuration, the solve."""
+    exert), its configuration, the solve. ``boundary`` the validated ``(inertia, q0, qf, omega0,
+    omegaf, rate_bound, cones)``, ``grid`` ``(intervals, substeps, fractions)``."""
+    inertia, q0, qf, w0, wf, rate_bound, cones = boundary
+    intervals, substeps, fractions = grid
+    init = options[-1]
+    free = duration is None
     dtype = jnp.result_type(q0)
     spec = controlled_model.validated(model, dtype)
     n = spec.controls
@@ -618,8 +591,11 @@ def _model_problem(
     else:  # the controls that give the eigenaxis profile's peak torque, at most
         rows = jnp.max(jnp.linalg.norm(jnp.linalg.pinv(JB), axis=-1), axis=-1)
         u_ref = jnp.broadcast_to((u_ref[..., 0] * rows)[..., None], batch + (n,))
-    if init is not None and getattr(init, "extra", None) is None:
-        raise ValueError("argument 'init' must be a result of a model (its extra states) when model is given")
+    m = spec.z0.shape[0]
+    if init is not None and (init.h is None or init.h.shape[-1] != m):
+        raise ValueError(
+            f"argument 'init' must be a result of a model with {m} extra states (its extra) when model is given"
+        )
     cfg = Config(
         intervals,
         substeps,
