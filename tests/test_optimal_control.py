@@ -363,6 +363,25 @@ def test_a_wheel_momentum_bound_holds_on_a_finer_resimulation_and_costs_time(whe
     assert np.max(np.abs(np.asarray(returned))) < 1e-12
 
 
+def test_four_wheels_in_a_pyramid_spend_the_least_squares_wheel_torques(free_energy):
+    """Four wheels in the standard pyramid (each axis 54.7 deg from body z, A^T A = 4/3 I),
+    minimum energy from rest (wheel torque bound 100: not binding). From rest the inertial
+    momentum stays 0, so J w + A h = 0 and J w' = -A u: for J = I the body torque is free_energy's
+    rigid-body optimum tau, spent by the wheel torques of least norm, u = -A^+ tau, at 3/4 of its
+    energy (|u|^2 = tau^T (A A^T)^+ tau). Measured: torques to 9.5e-13, the ratio 0.75 to
+    rounding; the redundant fourth wheel (the least-squares guess and the null space of A)."""
+    tilt, azimuth = np.arccos(1 / np.sqrt(3)), np.pi / 4 + np.arange(4) * np.pi / 2
+    axes = np.stack([np.sin(tilt) * np.cos(azimuth), np.sin(tilt) * np.sin(azimuth), np.full(4, np.cos(tilt))], 1)
+    r = jq.minimum_energy_reorientation(
+        np.eye(3), np.stack([Q0, Q0]), np.stack([QF, QZ]), 2.0, intervals=N, wheels=jq.ReactionWheels(axes, 100.0)
+    )
+    assert np.all(np.asarray(r.converged)) and float(jnp.max(r.violation)) < 1e-10
+    assert np.asarray(r.controls).shape == (2, N, 4) and np.asarray(r.wheel_momentum).shape == (2, N * 4 + 1, 4)
+    np.testing.assert_allclose(np.asarray(r.cost), 0.75 * np.asarray(free_energy.cost), rtol=1e-10)
+    spent = -np.einsum("ij,bkj->bki", np.linalg.pinv(axes.T), np.asarray(free_energy.controls))
+    np.testing.assert_allclose(np.asarray(r.controls), spent, rtol=0, atol=1e-9)
+
+
 def test_wheel_slew_example(wheel_bilimoria_wie, tmp_path):
     """The reaction-wheel star-tracker slew, least time then least fuel in 1.5 times that time
     (12 intervals: the fixture's configuration for the first), every constraint checked on a 10x
