@@ -235,12 +235,18 @@ def _held(controls, edges, time=2.0):
 def test_switch_times_inside_intervals_at_nodes_and_to_zero():
     """Inside an interval the one switch whose average is the held value (from 1 to -1 with 0.2
     held: 60 % of it at 1), at a node where the level steps, and to and from 0 (bang-off-bang);
-    no switch in a smooth torque or where neither neighbour holds a level."""
+    switches closer than a thousandth of an interval merged; none in a smooth torque."""
     edges = np.array([0.0, 0.2, 0.4, 0.6, 0.8, 1.0])
     u = np.array([[1.0, 0.0, 0.0], [1.0, 0.5, 0.1], [0.2, 0.5, 0.2], [-1.0, 0.0, 0.3], [-1.0, 0.0, 0.4]])
     np.testing.assert_allclose(jq.switch_times(_held(u, edges)), [0.2, 0.52, 0.6], atol=1e-15)
     uneven = np.array([0.0, 0.1, 0.5, 0.6, 1.0])
     np.testing.assert_allclose(jq.switch_times(_held([[1.0], [-0.5], [-1.0], [-1.0]], uneven)), [0.2], rtol=1e-15)
+    # two components switching 1e-4 apart (under a thousandth of an interval): one node
+    together = np.array([[1.0, 1.0], [1.0, 1.0], [-0.4, -0.399], [-1.0, -1.0], [-1.0, -1.0]])
+    np.testing.assert_allclose(jq.switch_times(_held(together, edges)), [0.46], rtol=1e-14)
+    ramp = _held(np.linspace(0.1, 0.5, 5)[:, None], edges)
+    assert jq.switch_times(ramp).shape == (0,)
+    np.testing.assert_allclose(jq.align_mesh(ramp), np.full(5, 0.2), rtol=1e-15)
     mesh = jq.align_mesh(_held(u, edges), intervals=8)
     np.testing.assert_allclose(np.sum(mesh), 1.0, rtol=1e-15)
     edges_out = np.concatenate([[0.0], np.cumsum(mesh)])

@@ -134,7 +134,8 @@ def switch_times(result, *, threshold: float = 1e-3) -> np.ndarray:
     component's largest magnitude, 0, or a value the neighbouring interval shares, to within
     ``threshold`` times that magnitude), the time ``t_k + f h_k`` with
     ``f = (u_k - c) / (a - c)``: the one switch from ``a`` to ``c`` that gives the interval's
-    held value as its average (bang-bang, and bang-off-bang with the level 0)."""
+    held value as its average (bang-bang, and bang-off-bang with the level 0). Switches within a
+    thousandth of an interval of each other count once."""
     u, edges = _grid_of(result)
     scale = np.max(np.abs(u), axis=0)
     scale = np.where(scale > 0, scale, 1.0)
@@ -155,8 +156,14 @@ def switch_times(result, *, threshold: float = 1e-3) -> np.ndarray:
                     f = (u[k, i] - c) / (a - c)
                     if 0 < f < 1:
                         times.append(edges[k] + f * (edges[k + 1] - edges[k]))
-    times = np.sort(np.asarray(times, np.float64))
-    return times[np.concatenate([[True], np.diff(times) > 1e-9])] if times.size else times
+    # Switches closer than a thousandth of an interval (two components switching together) are
+    # one: a node apart from each would leave an interval too short for its torque to act.
+    close = 1e-3 / n
+    kept: list[float] = []
+    for t in np.sort(np.asarray(times, np.float64)):
+        if not kept or t - kept[-1] > close:
+            kept.append(float(t))
+    return np.asarray(kept, np.float64)
 
 
 def align_mesh(result, *, intervals: int | None = None, threshold: float = 1e-3) -> np.ndarray:
@@ -171,7 +178,8 @@ def align_mesh(result, *, intervals: int | None = None, threshold: float = 1e-3)
     against 3.245418 uniform at 14 and 3.243096 at 80 (``docs/optimal-control.md``)."""
     times = switch_times(result, threshold=threshold)
     n = np.asarray(result.controls).shape[0] if intervals is None else intervals
-    points = np.concatenate([[0.0], times[(times > 1e-9) & (times < 1 - 1e-9)], [1.0]])
+    close = 1e-3 / np.asarray(result.controls).shape[0]
+    points = np.concatenate([[0.0], times[(times > close) & (times < 1 - close)], [1.0]])
     spans = np.diff(points)
     if not isinstance(n, int) or n < spans.shape[0]:
         raise ValueError(
