@@ -61,8 +61,8 @@ class ControlledModel(NamedTuple):
 
 
 class Model(NamedTuple):
-    """A validated :class:`ControlledModel`: ``z0`` ``(m,)`` and ``bound`` ``(m,)`` (``inf``
-    where unbounded) in the problem's dtype, ``scale`` a float, ``args`` arrays."""
+    """A validated :class:`ControlledModel`: ``z0`` ``(m,)`` and ``bound`` ``(m,)`` (or ``None``)
+    in the problem's dtype, ``scale`` a float, ``args`` arrays."""
 
     field: Callable[..., Any]
     controls: int
