@@ -538,22 +538,37 @@ def optimal_reorientation(
             raise ValueError("argument 'init' must be a result with wheels (wheel_momentum) when wheels are given")
     elif bound is not None:
         u_ref = jnp.broadcast_to(jnp.asarray(bound), u_ref.shape)
-    cfg = Config(
-        intervals,
-        substeps,
+    cfg = _config(
+        (intervals, substeps, fractions),
         free,
         bound is not None,
-        rate_bound is not None,
-        len(cones),
-        fuel=bool(weights[2] > 0),
-        energy=bool(weights[1] > 0),
-        uniform=fractions is None,
+        rate_bound,
+        cones,
+        weights,
         wheels=0 if spec is None else int(spec[0].shape[0]),
         momentum_bounded=spec is not None and spec[2] is not None,
     )
     options = _options(tol, max_iter, throw, starts, seed, init)
     return _run(
         cfg, inertia, q0, qf, w0, wf, T, u_ref, w_ref, rate_bound, cones, weights, fractions, options, spec, None
+    )
+
+
+def _config(grid, free: bool, bounded: bool, rate_bound, cones, weights, **model) -> Config:
+    """The configuration (what the compiled solver depends on) of a problem: ``grid`` ``(intervals,
+    substeps, fractions)``; ``model`` the wheels' or a user model's fields of :class:`Config`."""
+    intervals, substeps, fractions = grid
+    return Config(
+        intervals,
+        substeps,
+        free,
+        bounded,
+        rate_bound is not None,
+        len(cones),
+        fuel=bool(weights[2] > 0),
+        energy=bool(weights[1] > 0),
+        uniform=fractions is None,
+        **model,
     )
 
 
@@ -604,16 +619,13 @@ def _model_problem(model, torque_bound, duration, boundary, grid, weights, optio
         raise ValueError(
             f"argument 'init' must be a result of a model with {m} extra states (its extra) when model is given"
         )
-    cfg = Config(
-        intervals,
-        substeps,
+    cfg = _config(
+        grid,
         free,
         bound is not None,
-        rate_bound is not None,
-        len(cones),
-        fuel=bool(weights[2] > 0),
-        energy=bool(weights[1] > 0),
-        uniform=fractions is None,
+        rate_bound,
+        cones,
+        weights,
         momentum_bounded=spec.bound is not None,
         model=spec.field,
         model_controls=n,
