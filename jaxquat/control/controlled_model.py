@@ -144,8 +144,8 @@ def control_matrix(field: Callable[..., Any], y: tuple, args: Any, n: int) -> tu
     in ``u``, the linearisation otherwise)."""
     dtype = y[1].dtype
 
-    def wdot(u):
-        return rates(field, y, u, args)[1]
+    def wdot(u):  # the value comes out of the Jacobian's own primal pass
+        value = rates(field, y, u, args)[1]
+        return value, value
 
-    zero = jnp.zeros(n, dtype)
-    return jax.jacfwd(wdot)(zero), wdot(zero)
+    return jax.jacfwd(wdot, has_aux=True)(jnp.zeros(n, dtype))

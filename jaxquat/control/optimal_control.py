@@ -127,6 +127,11 @@ def _grid_of(result) -> tuple[np.ndarray, np.ndarray]:
     return u, ts[:: (ts.shape[0] - 1) // n] / ts[-1]
 
 
+# Switches closer than this fraction of an interval (two components switching together) are one:
+# a node apart from each would leave an interval too short for its torque to act.
+_MERGED = 1e-3
+
+
 def switch_times(result, *, threshold: float = 1e-3) -> np.ndarray:
     """The switching times of ``result``'s piecewise-constant controls, as sorted fractions of its
     time: a node where a component steps from one held level to another, and inside an interval
@@ -156,9 +161,7 @@ def switch_times(result, *, threshold: float = 1e-3) -> np.ndarray:
                     f = (u[k, i] - c) / (a - c)
                     if 0 < f < 1:
                         times.append(edges[k] + f * (edges[k + 1] - edges[k]))
-    # Switches closer than a thousandth of an interval (two components switching together) are
-    # one: a node apart from each would leave an interval too short for its torque to act.
-    close = 1e-3 / n
+    close = _MERGED / n
     kept: list[float] = []
     for t in np.sort(np.asarray(times, np.float64)):
         if not kept or t - kept[-1] > close:
@@ -177,8 +180,9 @@ def align_mesh(result, *, intervals: int | None = None, threshold: float = 1e-3)
     mesh: Bilimoria and Wie's 180 degrees at 14 aligned intervals after three solves 3.2430858,
     against 3.245418 uniform at 14 and 3.243096 at 80 (``docs/optimal-control.md``)."""
     times = switch_times(result, threshold=threshold)
-    n = np.asarray(result.controls).shape[0] if intervals is None else intervals
-    close = 1e-3 / np.asarray(result.controls).shape[0]
+    old = np.asarray(result.controls).shape[0]
+    n = old if intervals is None else intervals
+    close = _MERGED / old  # a switch this near an end is the end (as near switches are one)
     points = np.concatenate([[0.0], times[(times > close) & (times < 1 - close)], [1.0]])
     spans = np.diff(points)
     if not isinstance(n, int) or n < spans.shape[0]:
@@ -592,7 +596,7 @@ def _model_problem(model, torque_bound, duration, boundary, grid, weights, optio
     exert), its configuration, the solve. ``boundary`` the validated ``(inertia, q0, qf, omega0,
     omegaf, rate_bound, cones)``, ``grid`` ``(intervals, substeps, fractions)``."""
     inertia, q0, qf, w0, wf, rate_bound, cones = boundary
-    intervals, substeps, fractions = grid
+    fractions = grid[2]
     init = options[-1]
     free = duration is None
     dtype = jnp.result_type(q0)

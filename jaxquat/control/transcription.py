@@ -306,8 +306,8 @@ def _model_guess(cfg: Config, data: Data, qm, wm, am):
 
     def interval(z, xs):
         q, w, a, h = xs
-        B, w0 = control_matrix(cfg.model, (q, w, z), data.model_args, cfg.model_controls)
-        u = jnp.linalg.pinv(B) @ (a - w0)
+        B, wdot0 = control_matrix(cfg.model, (q, w, z), data.model_args, cfg.model_controls)
+        u = jnp.linalg.pinv(B) @ (a - wdot0)
         z = z + h * rates(cfg.model, (q, w, z), u, data.model_args)[2]
         return z, (z, u)
 
@@ -327,14 +327,14 @@ def initial_guess(cfg: Config, data: Data):
         sm = s - data.fractions / 2
     shape, rate_n, _ = _profile(cfg.min_time, s)
     shape_m, rate, accel = _profile(cfg.min_time, sm)
-    qs = jax.vmap(lambda a: plus(data.q0, a * rotvec))(shape)
-    qs = qs.at[-1].set(data.qf)
+    along = jax.vmap(lambda a: plus(data.q0, a * rotvec))  # the eigenaxis attitudes at angle fractions
+    qs = along(shape).at[-1].set(data.qf)
     ws = rate_n[:, None] * rotvec[None] / data.duration + (1 - s)[:, None] * data.w0[None] + s[:, None] * data.wf[None]
     wm = rate[:, None] * rotvec[None] / data.duration + (1 - sm)[:, None] * data.w0[None] + sm[:, None] * data.wf[None]
     am = accel[:, None] * rotvec[None] / data.duration**2 + (data.wf - data.w0)[None] / data.duration
     if cfg.model is not None:
         # the model's own dynamics and control matrix at the profile's midpoints
-        hs, u = _model_guess(cfg, data, jax.vmap(lambda a: plus(data.q0, a * rotvec))(shape_m), wm, am)
+        hs, u = _model_guess(cfg, data, along(shape_m), wm, am)
     elif cfg.wheels:
         # Wheel momenta from the body-frame momentum balance without its rotation,
         # A^T (h - h0) = -J (w - w0), and the wheel torques A^T u = -(J a + w x (J w + A^T h)).
