@@ -8,7 +8,8 @@ runs. The roofline is a jitted element-wise ``a + b`` over two ``(N, 4)``
 arrays, the memory-traffic floor for an op that reads two quaternion arrays and
 writes one.
 
-    python benchmarks/ops.py [--n 1 1000 1000000] [--dtype float32 float64] [--no-grad] [--write docs/benchmarks.md]
+    python benchmarks/ops.py [--n 1 1000 1000000] [--dtype float32 float64] [--no-grad] [--no-forward]
+                             [--no-numpy] [--write docs/benchmarks.md]
 """
 
 from __future__ import annotations
@@ -270,7 +271,7 @@ def roofline(nbytes: int, dtype, repeats: int) -> float:
     return _time(_ADD, a, a + 1, repeats=repeats)
 
 
-def run(n: int, dtype, repeats: int, grad: bool):
+def run(n: int, dtype, repeats: int, grad: bool, numpy: bool = True):
     """Times per op and library (seconds; None where a library lacks the op or fails to trace),
     and each op's roofline (the same bytes read and written by ``a + b``)."""
     import numpy as np
@@ -284,7 +285,7 @@ def run(n: int, dtype, repeats: int, grad: bool):
     m = jax.jit(jq.to_matrix)(p)
     args = (p, q, v, m, t)
     np_args = tuple(np.asarray(x) for x in args)
-    numpy_side = {} if grad else numpy_contenders()
+    numpy_side = numpy_contenders() if numpy and not grad else {}
     rows = []
     for op, libs in contenders().items():
         times = {}
@@ -338,6 +339,12 @@ def main(argv=None):
     ap.add_argument("--dtype", nargs="+", default=["float32", "float64"], choices=["float32", "float64"])
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--no-grad", action="store_true")
+    ap.add_argument("--no-forward", action="store_true", help="only the jax.grad tables")
+    ap.add_argument(
+        "--no-numpy",
+        action="store_true",
+        help="skip the NumPy contenders (on an accelerator they time the host)",
+    )
     ap.add_argument("--write", help="markdown file whose 'ops' section to rewrite")
     a = ap.parse_args(argv)
     sections = [
@@ -350,9 +357,9 @@ def main(argv=None):
     for dtype in a.dtype:
         jax.config.update("jax_enable_x64", dtype == "float64")
         for n in a.n:
-            for grad in [False] if a.no_grad else [False, True]:
+            for grad in [False] * (not a.no_forward) + [True] * (not a.no_grad):
                 reps = a.repeats if n < 1_000_000 else max(3, a.repeats // 3)
-                rows = run(n, jnp.dtype(dtype), reps, grad)
+                rows = run(n, jnp.dtype(dtype), reps, grad, numpy=not a.no_numpy)
                 md = table(n, dtype, rows, grad)
                 print(md, flush=True)
                 sections.append(md)
