@@ -473,6 +473,55 @@ def test_a_user_model_of_the_rigid_body_is_the_built_in_solve(damped_energy, fre
     assert np.max(np.abs(np.asarray(asymmetric.cost) / np.asarray(undamped.cost) - 1)) > 0.1
 
 
+def _payload_body(y, u, args):
+    """The torqued body (``J w' = u - w x J w``) carrying a payload fixed to it: ``z = (p, e)``,
+    ``p`` the payload's attitude (a second unit quaternion, ``p' = 1/2 p (0, w)``) and ``e`` the
+    energy meter ``e' = |u|^2``."""
+    q, w, z = y
+    J, J_inv = args
+    p = z[:4]
+    qdot = 0.5 * jq.multiply(q, jnp.concatenate([jnp.zeros(1, w.dtype), w]))
+    pdot = 0.5 * jq.multiply(p, jnp.concatenate([jnp.zeros(1, w.dtype), w]))
+    return qdot, J_inv @ (u - jnp.cross(w, J @ w)), jnp.concatenate([pdot, jnp.sum(u * u)[None]])
+
+
+PAYLOAD0 = np.asarray(jq.from_rotvec(jnp.asarray([0.3, -0.2, 0.5])), np.float64)
+
+
+def test_a_model_with_a_second_quaternion_advances_it_on_the_group(free_energy):
+    """``extra_quaternions=1``: the payload's attitude ``p`` rides the body's rate, so ``p(t) = (p0
+    q0*) q(t)`` exactly, and the Lie step keeps it unit; it does not act on the body, so the NLP
+    is the built-in rigid body's (free_energy's two slews): controls to 1e-10. Measured: controls
+    to 1.8e-13, ``p`` to 1.1e-15 of ``(p0 q0*) q`` and unit to 1.1e-16."""
+    model = jq.ControlledModel(
+        _payload_body, 3, extra0=[*PAYLOAD0, 0.0], args=(np.eye(3), np.eye(3)), extra_quaternions=1
+    )
+    r = jq.minimum_energy_reorientation(
+        np.eye(3), np.stack([Q0, Q0]), np.stack([QF, QZ]), 2.0, intervals=N, model=model
+    )
+    assert np.all(np.asarray(r.converged)) and float(jnp.max(r.violation)) < 1e-10
+    np.testing.assert_allclose(np.asarray(r.controls), np.asarray(free_energy.controls), rtol=0, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(r.extra[:, -1, 4]), np.asarray(r.cost), rtol=1e-12)
+    p = np.asarray(r.extra[..., :4])
+    offset = jq.multiply(jnp.asarray(PAYLOAD0), jq.conjugate(jnp.asarray(Q0)))
+    np.testing.assert_allclose(p, np.asarray(jq.multiply(offset, r.q)), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(p, axis=-1), 1.0, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(extra0=[*PAYLOAD0, 0.0], extra_quaternions=2), "extra_quaternions must be an int k >= 0 with 4 k <= 5"),
+        (dict(extra0=[*PAYLOAD0, 0.0], extra_quaternions=True), "extra_quaternions must be an int"),
+        (dict(extra0=[1.0, 0.0, 0.1, 0.0, 0.0], extra_quaternions=1), "first 4 entries must be 1 unit quaternions"),
+    ],
+)
+def test_bad_extra_quaternions_raise_naming_the_field(kwargs, match):
+    model = jq.ControlledModel(_payload_body, 3, args=(np.eye(3), np.eye(3)), **kwargs)
+    with pytest.raises(ValueError, match=match):
+        jq.minimum_energy_reorientation(np.eye(3), Q0, QF, 2.0, intervals=N, model=model)
+
+
 def test_a_damped_user_model_meets_the_exact_held_torque_optimum(damped_energy):
     """With J = I and damping the optimum stays on the eigenaxis, where the motion is the linear
     theta'' = u - c theta': its held-torque optimum, exact from the matrix exponential, is the

@@ -9,7 +9,9 @@ conditions ``omega0``/``omegaf`` and ``rate_bound`` apply to it) and ``m >= 0`` 
 ``z(T)`` free, ``|z_i| <= extra_bound_i`` at every integration step if given. The controls
 ``u`` ``(n,)`` are held constant on each interval, bounded by the solvers' ``torque_bound``
 (``(n,)`` or a scalar); the energy and fuel costs are ``int |u|^2 dt`` and ``int sum_i |u_i| dt``
-over them.
+over them. The first ``4 k`` entries of ``z`` may be ``k`` further unit quaternions
+(``extra_quaternions=k``: a gimballed payload's attitude, a second body's), advanced on the
+group by the same RKMK4 step as ``q``.
 """
 
 from __future__ import annotations
@@ -42,6 +44,10 @@ class ControlledModel(NamedTuple):
     bounds); ``args`` a pytree of arrays handed to ``field`` as data: problems that differ only
     in ``args`` (or in the boundary states) share one compiled solver, whereas each new
     ``field`` function is compiled anew (it is part of the configuration, compared by identity).
+    ``extra_quaternions`` ``k``: the first ``4 k`` entries of ``z`` are ``k`` unit quaternions
+    (``extra0``'s must have unit norm), whose rates in ``z'`` are ordinary quaternion derivatives
+    like ``q'``; the Lie step advances them on the group (their body rates ``2 vec(p* p')``), so
+    they stay unit. A bound in ``extra_bound`` applies to their components as to any entry.
 
     The solvers' ``inertia`` is still needed: with the control matrix ``B = dw'/du`` at the
     initial state it gives the body torques the controls can exert, ``|J B| b``, from which the
@@ -58,11 +64,13 @@ class ControlledModel(NamedTuple):
     extra_bound: ArrayLike | None = None
     extra_scale: float | None = None
     args: Any = None
+    extra_quaternions: int = 0
 
 
 class Model(NamedTuple):
     """A validated :class:`ControlledModel`: ``z0`` ``(m,)`` and ``bound`` ``(m,)`` (or ``None``)
-    in the problem's dtype, ``scale`` a float, ``args`` arrays."""
+    in the problem's dtype, ``scale`` a float, ``args`` arrays, ``quaternions`` the ``k`` unit
+    quaternions leading ``z``."""
 
     field: Callable[..., Any]
     controls: int
@@ -70,6 +78,7 @@ class Model(NamedTuple):
     bound: Array | None
     scale: float
     args: Any
+    quaternions: int = 0
 
 
 def validated(model: Any, dtype) -> Model:
@@ -84,6 +93,14 @@ def validated(model: Any, dtype) -> Model:
     if z0.ndim != 1 or not np.all(np.isfinite(z0)):
         raise ValueError(f"model.extra0 must be finite, shaped (m,) (None: no extra states), got {z0}")
     m = z0.shape[0]
+    k = model.extra_quaternions
+    if not isinstance(k, int) or isinstance(k, bool) or k < 0 or 4 * k > m:
+        raise ValueError(
+            f"model.extra_quaternions must be an int k >= 0 with 4 k <= {m} (the first 4 k entries of z), got {k!r}"
+        )
+    norms = np.linalg.norm(z0[: 4 * k].reshape(k, 4), axis=-1)
+    if np.any(np.abs(norms - 1) > 1e-6):
+        raise ValueError(f"model.extra0's first {4 * k} entries must be {k} unit quaternions, got norms {norms}")
     bound = None
     if model.extra_bound is not None:
         bound = np.asarray(model.extra_bound, np.float64)
@@ -107,6 +124,7 @@ def validated(model: Any, dtype) -> Model:
         None if bound is None else jnp.asarray(bound, dtype),
         scale,
         args,
+        k,
     )
 
 
@@ -129,14 +147,34 @@ def rates(field: Callable[..., Any], y: tuple, u: Array, args: Any) -> tuple[Arr
     return dq, dw, dz
 
 
-def lie_field(field: Callable[..., Any], args: Any) -> Callable:
-    """The Lie-algebra form ``(t, y, u) -> (w_b, w', z')`` of ``field`` that RKMK4 advances."""
+def lie_field(field: Callable[..., Any], args: Any, quaternions: int = 0) -> Callable:
+    """The Lie-algebra form of ``field`` that RKMK4 advances: ``(t, (q, w, z), u) -> (w_b, w',
+    z')``, or with ``k = quaternions > 0`` on the split state ``(q, w, P (k, 4), r)`` (``z = (P,
+    r)`` flattened) ``-> (w_b, w', P's body rates (k, 3), r')``."""
+    k = quaternions
 
     def lie(t, y, u):
         dq, dw, dz = rates(field, y, u, args)
         return body_rate(y[0], dq), dw, dz
 
-    return lie
+    def split(t, y, u):
+        q, w, P, r = y
+        dq, dw, dz = rates(field, (q, w, jnp.concatenate([P.ravel(), r])), u, args)
+        return body_rate(q, dq), dw, body_rate(P, dz[: 4 * k].reshape(k, 4)), dz[4 * k :]
+
+    return split if k else lie
+
+
+def split_state(z: Array, quaternions: int) -> tuple[Array, Array]:
+    """``z (m,) -> (P (k, 4), r (m - 4 k,))``: the leading unit quaternions and the rest."""
+    k = quaternions
+    return z[: 4 * k].reshape(k, 4), z[4 * k :]
+
+
+def renormalised(z: Array, quaternions: int) -> Array:
+    """``z`` with its leading ``quaternions`` quaternions scaled to unit norm."""
+    P, r = split_state(z, quaternions)
+    return jnp.concatenate([(P / jnp.linalg.norm(P, axis=-1, keepdims=True)).ravel(), r])
 
 
 def control_matrix(field: Callable[..., Any], y: tuple, args: Any, n: int) -> tuple[Array, Array]:

@@ -633,6 +633,7 @@ def _model_problem(model, torque_bound, duration, boundary, grid, weights, optio
         momentum_bounded=spec.bound is not None,
         model=spec.field,
         model_controls=n,
+        model_quaternions=spec.quaternions,
     )
     return _run(
         cfg, inertia, q0, qf, w0, wf, T, u_ref, w_ref, rate_bound, cones, weights, fractions, options, None, spec

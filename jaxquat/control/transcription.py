@@ -40,7 +40,7 @@ from .. import _arrays, _quaternion, _rates
 from ..integration.fixed_step import solve_fixed_steps
 from ..integration.lie_solvers import RKMK4, BodyRateTerm
 from ..manifold.lie import minus, plus
-from .controlled_model import control_matrix, lie_field, rates
+from .controlled_model import control_matrix, lie_field, rates, renormalised, split_state
 from .interior_point import ShootingProblem, solve_shooting
 
 __all__ = ["ConstrainedReorientation"]
@@ -126,6 +126,7 @@ class Config(NamedTuple):
     # extra states z take the wheel momenta's places in the data (h0, h_ref, momentum_bound).
     model: Any = None
     model_controls: int = 0
+    model_quaternions: int = 0  # unit quaternions leading z, advanced on the group
 
 
 def _controls_of(cfg: Config) -> int:
@@ -194,6 +195,12 @@ def _states(cfg: Config, data: Data, x0, time, u, substeps: int, fractions=None)
     """``(qs, ws, hs)`` from the physical start ``x0 = (q, w, h)`` through the held controls
     ``u``: the rigid body (``hs`` empty), the wheels, or a user model (``hs`` its ``z``)."""
     q0, w0, h0 = x0
+    if cfg.model is not None and cfg.model_quaternions:
+        k = cfg.model_quaternions
+        field = lie_field(cfg.model, data.model_args, k)
+        solver = RKMK4(quaternions=(True, False, True, False))
+        qs, ws, Ps, rs = _held(solver, field, (q0, w0, *split_state(h0, k)), time, u, substeps, fractions)
+        return qs, ws, jnp.concatenate([Ps.reshape(Ps.shape[:-2] + (4 * k,)), rs], axis=-1)
     if cfg.model is not None:
         field = lie_field(cfg.model, data.model_args)
         return _held(RKMK4(quaternions=(True, False, False)), field, (q0, w0, h0), time, u, substeps, fractions)
@@ -309,6 +316,8 @@ def _model_guess(cfg: Config, data: Data, qm, wm, am):
         B, wdot0 = control_matrix(cfg.model, (q, w, z), data.model_args, cfg.model_controls)
         u = jnp.linalg.pinv(B) @ (a - wdot0)
         z = z + h * rates(cfg.model, (q, w, z), u, data.model_args)[2]
+        if cfg.model_quaternions:  # an Euler step leaves the unit sphere
+            z = renormalised(z, cfg.model_quaternions)
         return z, (z, u)
 
     return jax.lax.scan(interval, data.h0, (qm, wm, am, lengths))[1]
@@ -360,7 +369,7 @@ def initial_guess(cfg: Config, data: Data):
 def _resampled(cfg: Config, data: Data, init):
     """A warm start from a previous result ``init`` (any grid): its torque on each new interval's
     midpoint, its trajectory interpolated at the new nodes (linear in normalised time, ``q``
-    renormalised), its time. Scaled as the NLP's unknowns."""
+    and a user model's quaternions renormalised), its time. Scaled as the NLP's unknowns."""
     dtype = data.q0.dtype
     old = jnp.asarray(init.ts, dtype) / jnp.asarray(init.time, dtype)
     torque, q, w = (jnp.asarray(a, dtype) for a in (init.torque, init.q, init.omega))
@@ -379,6 +388,8 @@ def _resampled(cfg: Config, data: Data, init):
         if cfg.wheels or cfg.model is not None
         else jnp.zeros((ws.shape[0], 0), dtype)
     )
+    if cfg.model_quaternions:  # a user model's quaternions in z, renormalised as q is
+        hs = jax.vmap(lambda z: renormalised(z, cfg.model_quaternions))(hs)
     X = jnp.concatenate([qs / jnp.linalg.norm(qs, axis=-1, keepdims=True), ws / data.w_ref, hs / data.h_ref], axis=1)
     p = jnp.reshape(jnp.asarray(init.time, dtype) / data.duration, (1,)) if cfg.min_time else jnp.zeros((0,), dtype)
     return X, u / data.u_ref[None], p
