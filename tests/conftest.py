@@ -22,6 +22,9 @@ the GPU machine of session 21), which would take down every test worker.
 import os
 from importlib.metadata import version
 
+import pytest
+from hypothesis import HealthCheck, settings
+
 
 def _before(dist: str, major: int, minor: int) -> bool:
     return tuple(int(x) for x in version(dist).split(".")[:2]) < (major, minor)
@@ -36,8 +39,6 @@ if not os.environ.get("JAXQUAT_TEST_XLA_DEFAULTS") and _before("jaxlib", 0, 11):
     ).strip()
 
 import jax  # noqa: E402
-import pytest
-from hypothesis import HealthCheck, settings
 
 # Accidental implicit broadcasting is a bug in library code: make it an error.
 jax.config.update("jax_numpy_rank_promotion", "raise")
