@@ -1,17 +1,17 @@
-"""A user's spacecraft model for the optimal-control solvers (``model=``): any attitude dynamics
-with a control input, solved by the same multiple-shooting transcription and RKMK4 step as the
-built-in rigid body and reaction wheels.
+"""A user's spacecraft model for the optimal-control solvers (``model=``): any attitude dynamics with
+a control input, solved by the same multiple-shooting transcription and RKMK4 step as the built-in
+rigid body and reaction wheels.
 
-The state is ``y = (q, w, z)``: the attitude ``q`` ``(4,)`` (body to inertial, the quaternion
-leaf the Lie solver advances on the group), the body rate ``w`` ``(3,)`` (the boundary
-conditions ``omega0``/``omegaf`` and ``rate_bound`` apply to it) and ``m >= 0`` further states
-``z`` ``(m,)`` (wheel momenta, a stored momentum, an energy meter, ...): ``z(0) = extra0``,
-``z(T)`` free, ``|z_i| <= extra_bound_i`` at every integration step if given. The controls
-``u`` ``(n,)`` are held constant on each interval, bounded by the solvers' ``torque_bound``
-(``(n,)`` or a scalar); the energy and fuel costs are ``int |u|^2 dt`` and ``int sum_i |u_i| dt``
-over them. The first ``4 k`` entries of ``z`` may be ``k`` further unit quaternions
-(``extra_quaternions=k``: a gimballed payload's attitude, a second body's), advanced on the
-group by the same RKMK4 step as ``q``.
+The state is ``y = (q, w, z)``: the attitude ``q`` ``(4,)`` (body to inertial, the quaternion leaf
+the Lie solver advances on the group), the body rate ``w`` ``(3,)`` (the boundary conditions
+``omega0``/``omegaf`` and ``rate_bound`` apply to it) and ``m >= 0`` further states ``z`` ``(m,)``
+(wheel momenta, a stored momentum, an energy meter, ...): ``z(0) = extra0``, ``z(T)`` free (or
+``extra_final``, NaN entries free), ``|z_i| <= extra_bound_i`` at every integration step if given.
+The controls ``u`` ``(n,)`` are held constant on each interval, bounded by the solvers'
+``torque_bound`` (``(n,)`` or a scalar); the energy and fuel costs are ``int |u|^2 dt`` and ``int
+sum_i |u_i| dt`` over them. The first ``4 k`` entries of ``z`` may be ``k`` further unit
+quaternions (``extra_quaternions=k``: a gimballed payload's attitude, a second body's), advanced
+on the group by the same RKMK4 step as ``q``.
 """
 
 from __future__ import annotations
@@ -48,6 +48,10 @@ class ControlledModel(NamedTuple):
     (``extra0``'s must have unit norm), whose rates in ``z'`` are ordinary quaternion derivatives
     like ``q'``; the Lie step advances them on the group (their body rates ``2 vec(p* p')``), so
     they stay unit. A bound in ``extra_bound`` applies to their components as to any entry.
+    ``extra_final`` ``(m,)``: ``z(T)`` where given (NaN entries stay free); a quaternion's four
+    entries are all given (a unit quaternion, reached up to sign: ``vec(pf* p(T)) = 0``) or all
+    NaN. Leave free what the dynamics already fix (a conserved momentum, a state slaved to
+    ``q``): a redundant final condition makes the Newton systems singular.
 
     The solvers' ``inertia`` is still needed: with the control matrix ``B = dw'/du`` at the
     initial state it gives the body torques the controls can exert, ``|J B| b``, from which the
@@ -65,6 +69,7 @@ class ControlledModel(NamedTuple):
     extra_scale: float | None = None
     args: Any = None
     extra_quaternions: int = 0
+    extra_final: ArrayLike | None = None
 
 
 class Model(NamedTuple):
@@ -79,6 +84,8 @@ class Model(NamedTuple):
     scale: float
     args: Any
     quaternions: int = 0
+    final: Array | None = None  # (m,) z(T) targets, 0 where free
+    fixed: tuple[bool, ...] = ()  # which entries of z(T) are given (static)
 
 
 def validated(model: Any, dtype) -> Model:
@@ -101,6 +108,21 @@ def validated(model: Any, dtype) -> Model:
     norms = np.linalg.norm(z0[: 4 * k].reshape(k, 4), axis=-1)
     if np.any(np.abs(norms - 1) > 1e-6):
         raise ValueError(f"model.extra0's first {4 * k} entries must be {k} unit quaternions, got norms {norms}")
+    final, fixed = None, ()
+    if model.extra_final is not None:
+        zf = np.asarray(model.extra_final, np.float64)
+        if zf.shape != (m,) or np.any(np.isinf(zf)):
+            raise ValueError(f"model.extra_final must be shaped ({m},) like extra0, finite or NaN (free), got {zf}")
+        given = ~np.isnan(zf)
+        blocks = given[: 4 * k].reshape(k, 4)
+        if np.any(blocks.any(axis=-1) != blocks.all(axis=-1)):
+            raise ValueError("model.extra_final must give all four entries of an extra quaternion or none (NaN)")
+        pf = np.where(given, zf, 0.0)[: 4 * k].reshape(k, 4)
+        if np.any(blocks.all(axis=-1) & (np.abs(np.linalg.norm(pf, axis=-1) - 1) > 1e-6)):
+            raise ValueError(
+                f"model.extra_final's extra quaternions must be unit, got norms {np.linalg.norm(pf, axis=-1)}"
+            )
+        final, fixed = jnp.asarray(np.where(given, zf, 0.0), dtype), tuple(bool(g) for g in given)
     bound = None
     if model.extra_bound is not None:
         bound = np.asarray(model.extra_bound, np.float64)
@@ -125,6 +147,8 @@ def validated(model: Any, dtype) -> Model:
         scale,
         args,
         k,
+        final,
+        fixed,
     )
 
 

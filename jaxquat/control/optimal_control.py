@@ -338,9 +338,9 @@ def _run(
     dtype = q0.dtype
     batch = q0.shape[:-1]
     inf = jnp.asarray(jnp.inf, dtype)
-    args = None
+    args = final = None
     if model is not None:  # the extra states z in the wheel momenta's places
-        axes, h0, args = jnp.zeros((0, 3), dtype), model.z0, model.args
+        axes, h0, args, final = jnp.zeros((0, 3), dtype), model.z0, model.args, model.final
         h_bound = inf * jnp.ones_like(h0) if model.bound is None else model.bound
         h_ref = jnp.full_like(w_ref, model.scale)
     elif wheels is None:
@@ -371,6 +371,7 @@ def _run(
             hr,
             h_bound,
             args,
+            final,
         )
 
     flat = [jnp.reshape(a, (-1,) + a.shape[len(batch) :]) for a in (q0, qf, w0, wf, duration, u_ref, w_ref, h_ref)]
@@ -634,6 +635,7 @@ def _model_problem(model, torque_bound, duration, boundary, grid, weights, optio
         model=spec.field,
         model_controls=n,
         model_quaternions=spec.quaternions,
+        model_fixed=spec.fixed,
     )
     return _run(
         cfg, inertia, q0, qf, w0, wf, T, u_ref, w_ref, rate_bound, cones, weights, fractions, options, None, spec

@@ -108,6 +108,7 @@ class Data(NamedTuple):
     h_ref: Array  # wheel momentum scale
     momentum_bound: Array  # (n,) (inf: none)
     model_args: Any = None  # a user model's args (model=): data, so they do not recompile
+    model_final: Any = None  # (m,) a user model's z(T) targets where Config.model_fixed
 
 
 class Config(NamedTuple):
@@ -127,6 +128,7 @@ class Config(NamedTuple):
     model: Any = None
     model_controls: int = 0
     model_quaternions: int = 0  # unit quaternions leading z, advanced on the group
+    model_fixed: tuple = ()  # which entries of z(T) are given (extra_final)
 
 
 def _controls_of(cfg: Config) -> int:
@@ -269,10 +271,20 @@ def _problem(cfg: Config) -> ShootingProblem:
             cost = cost + data.weights[2] * h * jnp.sum(data.u_ref * c[nu:]) / total
         return x_next, cost, _path(cfg, data, qs[1:], ws[1:], hs[1:], c, p, k)
 
-    def terminal(xN, data):  # the wheel momenta, if any, are free
-        return jnp.concatenate(
-            [_quaternion.multiply(_quaternion.conjugate(data.qf), xN[:4])[1:], xN[4:7] - data.wf / data.w_ref]
-        )
+    def terminal(xN, data):  # the wheel momenta are free, a model's z where not given
+        parts = [_quaternion.multiply(_quaternion.conjugate(data.qf), xN[:4])[1:], xN[4:7] - data.wf / data.w_ref]
+        if any(cfg.model_fixed):
+            k, fixed = cfg.model_quaternions, cfg.model_fixed
+            zN = xN[7:] * data.h_ref
+            for j in range(k):  # a given extra quaternion, reached up to sign
+                if fixed[4 * j]:
+                    pf, pN = data.model_final[4 * j : 4 * j + 4], zN[4 * j : 4 * j + 4]
+                    parts.append(_quaternion.multiply(_quaternion.conjugate(pf), pN)[1:])
+            rest = [i for i in range(4 * k, len(fixed)) if fixed[i]]
+            if rest:
+                idx = jnp.asarray(rest)
+                parts.append((zN[idx] - data.model_final[idx]) / data.h_ref)
+        return jnp.concatenate(parts)
 
     def objective(p, data):
         units, total = _units(data)
