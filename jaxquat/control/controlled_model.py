@@ -105,7 +105,7 @@ def validated(model: Any, dtype) -> Model:
         raise ValueError(
             f"model.extra_quaternions must be an int k >= 0 with 4 k <= {m} (the first 4 k entries of z), got {k!r}"
         )
-    norms = np.linalg.norm(z0[: 4 * k].reshape(k, 4), axis=-1)
+    norms = np.linalg.norm(split_state(z0, k)[0], axis=-1)
     if np.any(np.abs(norms - 1) > 1e-6):
         raise ValueError(f"model.extra0's first {4 * k} entries must be {k} unit quaternions, got norms {norms}")
     final, fixed = None, ()
@@ -113,16 +113,14 @@ def validated(model: Any, dtype) -> Model:
         zf = np.asarray(model.extra_final, np.float64)
         if zf.shape != (m,) or np.any(np.isinf(zf)):
             raise ValueError(f"model.extra_final must be shaped ({m},) like extra0, finite or NaN (free), got {zf}")
-        given = ~np.isnan(zf)
-        blocks = given[: 4 * k].reshape(k, 4)
+        given, targets = ~np.isnan(zf), np.where(np.isnan(zf), 0.0, zf)
+        blocks = split_state(given, k)[0]
         if np.any(blocks.any(axis=-1) != blocks.all(axis=-1)):
             raise ValueError("model.extra_final must give all four entries of an extra quaternion or none (NaN)")
-        pf = np.where(given, zf, 0.0)[: 4 * k].reshape(k, 4)
-        if np.any(blocks.all(axis=-1) & (np.abs(np.linalg.norm(pf, axis=-1) - 1) > 1e-6)):
-            raise ValueError(
-                f"model.extra_final's extra quaternions must be unit, got norms {np.linalg.norm(pf, axis=-1)}"
-            )
-        final, fixed = jnp.asarray(np.where(given, zf, 0.0), dtype), tuple(bool(g) for g in given)
+        norms = np.linalg.norm(split_state(targets, k)[0], axis=-1)
+        if np.any(blocks.all(axis=-1) & (np.abs(norms - 1) > 1e-6)):
+            raise ValueError(f"model.extra_final's extra quaternions must be unit, got norms {norms}")
+        final, fixed = jnp.asarray(targets, dtype), tuple(bool(g) for g in given)
     bound = None
     if model.extra_bound is not None:
         bound = np.asarray(model.extra_bound, np.float64)
@@ -183,22 +181,29 @@ def lie_field(field: Callable[..., Any], args: Any, quaternions: int = 0) -> Cal
 
     def split(t, y, u):
         q, w, P, r = y
-        dq, dw, dz = rates(field, (q, w, jnp.concatenate([P.ravel(), r])), u, args)
-        return body_rate(q, dq), dw, body_rate(P, dz[: 4 * k].reshape(k, 4)), dz[4 * k :]
+        dq, dw, dz = rates(field, (q, w, join_state(P, r)), u, args)
+        dP, dr = split_state(dz, k)
+        return body_rate(q, dq), dw, body_rate(P, dP), dr
 
     return split if k else lie
 
 
-def split_state(z: Array, quaternions: int) -> tuple[Array, Array]:
-    """``z (m,) -> (P (k, 4), r (m - 4 k,))``: the leading unit quaternions and the rest."""
+def split_state(z: Any, quaternions: int) -> tuple[Any, Any]:
+    """``z (..., m) -> (P (..., k, 4), r (..., m - 4 k))``: the leading ``k = quaternions``
+    quaternions and the rest (NumPy or JAX arrays)."""
     k = quaternions
-    return z[: 4 * k].reshape(k, 4), z[4 * k :]
+    return z[..., : 4 * k].reshape(z.shape[:-1] + (k, 4)), z[..., 4 * k :]
+
+
+def join_state(P: Array, r: Array) -> Array:
+    """The inverse of :func:`split_state`: ``(P (..., k, 4), r (..., m - 4 k)) -> z (..., m)``."""
+    return jnp.concatenate([P.reshape(P.shape[:-2] + (4 * P.shape[-2],)), r], axis=-1)
 
 
 def renormalised(z: Array, quaternions: int) -> Array:
-    """``z`` with its leading ``quaternions`` quaternions scaled to unit norm."""
+    """``z`` ``(..., m)`` with its leading ``quaternions`` quaternions scaled to unit norm."""
     P, r = split_state(z, quaternions)
-    return jnp.concatenate([(P / jnp.linalg.norm(P, axis=-1, keepdims=True)).ravel(), r])
+    return join_state(P / jnp.linalg.norm(P, axis=-1, keepdims=True), r)
 
 
 def control_matrix(field: Callable[..., Any], y: tuple, args: Any, n: int) -> tuple[Array, Array]:

@@ -40,7 +40,7 @@ from .. import _arrays, _quaternion, _rates
 from ..integration.fixed_step import solve_fixed_steps
 from ..integration.lie_solvers import RKMK4, BodyRateTerm
 from ..manifold.lie import minus, plus
-from .controlled_model import control_matrix, lie_field, rates, renormalised, split_state
+from .controlled_model import control_matrix, join_state, lie_field, rates, renormalised, split_state
 from .interior_point import ShootingProblem, solve_shooting
 
 __all__ = ["ConstrainedReorientation"]
@@ -202,7 +202,7 @@ def _states(cfg: Config, data: Data, x0, time, u, substeps: int, fractions=None)
         field = lie_field(cfg.model, data.model_args, k)
         solver = RKMK4(quaternions=(True, False, True, False))
         qs, ws, Ps, rs = _held(solver, field, (q0, w0, *split_state(h0, k)), time, u, substeps, fractions)
-        return qs, ws, jnp.concatenate([Ps.reshape(Ps.shape[:-2] + (4 * k,)), rs], axis=-1)
+        return qs, ws, join_state(Ps, rs)
     if cfg.model is not None:
         field = lie_field(cfg.model, data.model_args)
         return _held(RKMK4(quaternions=(True, False, False)), field, (q0, w0, h0), time, u, substeps, fractions)
@@ -271,15 +271,16 @@ def _problem(cfg: Config) -> ShootingProblem:
             cost = cost + data.weights[2] * h * jnp.sum(data.u_ref * c[nu:]) / total
         return x_next, cost, _path(cfg, data, qs[1:], ws[1:], hs[1:], c, p, k)
 
+    def reached(target, q):  # vec(target* q) = 0: the attitude reached, up to sign
+        return _quaternion.multiply(_quaternion.conjugate(target), q)[1:]
+
     def terminal(xN, data):  # the wheel momenta are free, a model's z where not given
-        parts = [_quaternion.multiply(_quaternion.conjugate(data.qf), xN[:4])[1:], xN[4:7] - data.wf / data.w_ref]
+        parts = [reached(data.qf, xN[:4]), xN[4:7] - data.wf / data.w_ref]
         if any(cfg.model_fixed):
             k, fixed = cfg.model_quaternions, cfg.model_fixed
             zN = xN[7:] * data.h_ref
-            for j in range(k):  # a given extra quaternion, reached up to sign
-                if fixed[4 * j]:
-                    pf, pN = data.model_final[4 * j : 4 * j + 4], zN[4 * j : 4 * j + 4]
-                    parts.append(_quaternion.multiply(_quaternion.conjugate(pf), pN)[1:])
+            targets, ends = split_state(data.model_final, k)[0], split_state(zN, k)[0]
+            parts += [reached(targets[j], ends[j]) for j in range(k) if fixed[4 * j]]
             rest = [i for i in range(4 * k, len(fixed)) if fixed[i]]
             if rest:
                 idx = jnp.asarray(rest)
@@ -401,7 +402,7 @@ def _resampled(cfg: Config, data: Data, init):
         else jnp.zeros((ws.shape[0], 0), dtype)
     )
     if cfg.model_quaternions:  # a user model's quaternions in z, renormalised as q is
-        hs = jax.vmap(lambda z: renormalised(z, cfg.model_quaternions))(hs)
+        hs = renormalised(hs, cfg.model_quaternions)
     X = jnp.concatenate([qs / jnp.linalg.norm(qs, axis=-1, keepdims=True), ws / data.w_ref, hs / data.h_ref], axis=1)
     p = jnp.reshape(jnp.asarray(init.time, dtype) / data.duration, (1,)) if cfg.min_time else jnp.zeros((0,), dtype)
     return X, u / data.u_ref[None], p
