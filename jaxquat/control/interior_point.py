@@ -68,7 +68,10 @@ class ShootingSolution(NamedTuple):
     ``(N, nx)`` the continuity multipliers (``costates[k]`` of ``x_{k+1} = F(x_k, u_k, p)``);
     ``terminal_multipliers`` ``(ne,)``; ``path_multipliers`` ``(N, ng)`` (``>= 0``); ``objective``;
     ``violation`` the largest absolute equality residual or positive ``ineq``; ``kkt`` the
-    largest unscaled KKT residual (``mu = 0``); ``iterations``; ``converged``."""
+    largest unscaled KKT residual (``mu = 0``); ``iterations``; ``converged``;
+    ``control_jacobian`` ``(N, nx, nu)`` ``dx_{k+1}/du_k`` (so ``costates[k] @
+    control_jacobian[k]`` is the discrete switching function ``d(costates[k] . F)/du_k``). Every
+    field belongs to the returned point, also when ``max_iter`` stops the solve."""
 
     x: Array
     u: Array
@@ -81,6 +84,7 @@ class ShootingSolution(NamedTuple):
     kkt: Array
     iterations: Array
     converged: Array
+    control_jacobian: Array
 
 
 class _State(NamedTuple):
@@ -95,8 +99,11 @@ class _State(NamedTuple):
     filt: Array  # (_FILTER, 2) filter entries (theta, phi)
     it: Array
     kkt: Array
-    done: Array  # converged, or no finite step
+    done: Array  # converged, no finite step, or max_iter reached
     converged: Array
+    B: Array  # (N, nx, nu) dx_{k+1}/du_k at (X, U, p)
+    objective: Array  # at (X, U, p)
+    violation: Array  # at (X, U, p)
 
 
 _FILTER = 32  # filter entries kept (a circular buffer; old entries are dropped)
@@ -318,6 +325,11 @@ def solve_shooting(
 
     def body(st: _State) -> _State:
         F, cost, g, Fz, lz, gz, W, e, E, WT, phi, dphi, d2phi = derivatives(st)
+        # The slacks and path multipliers start from the first evaluation (no stage evaluation
+        # of its own before the loop: one copy of the stage fewer to trace and compile).
+        s_start = jnp.maximum(-g, 1e-2)
+        first = st.it == 0
+        st = st._replace(s=jnp.where(first, s_start, st.s), lam=jnp.where(first, st.mu / s_start, st.lam))
         rX, rU, rp = dual_residual(st, Fz, lz, gz, E, dphi)
         err0, kkt = errors(st, F, g, e, rX, rU, rp, 0.0)
         err_mu, _ = errors(st, F, g, e, rX, rU, rp, st.mu)
@@ -354,6 +366,9 @@ def solve_shooting(
         lam = jnp.clip(lam, mu / (1e10 * s), 1e10 * mu / s)
         step_ok = jnp.isfinite(a) & jnp.all(jnp.isfinite(dX)) & jnp.all(jnp.isfinite(dU))
         converged = err0 <= tol
+        violation = jnp.maximum(
+            jnp.maximum(jnp.max(jnp.abs(F - st.X)), jnp.max(jnp.abs(e), initial=0.0)), jnp.max(g, initial=0.0)
+        )
         if _DEBUG:
             jax.debug.print(
                 "it {i} mu {m:.1e} err0 {e:.2e} errmu {em:.2e} theta {t:.2e} phi {f:.6e} a {a:.2e} amax "
@@ -384,20 +399,33 @@ def solve_shooting(
             kkt,
             jnp.asarray(False),
             converged,
+            st.B,
+            st.objective,
+            st.violation,
         )
-        stop = st._replace(kkt=kkt, done=jnp.asarray(True), converged=converged)  # the iterate stays
-        return jax.tree.map(lambda n, o: jnp.where(converged | ~step_ok, o, n), new, stop)
+        # The iterate stays, with the values and the control Jacobian evaluated at it: the loop
+        # ends in this branch (also at max_iter, one evaluation without a step), so the result
+        # never needs a stage evaluation of its own after the loop.
+        stop = st._replace(
+            kkt=kkt,
+            done=jnp.asarray(True),
+            converged=converged,
+            B=Fz[:, :, nx : nx + nu],
+            objective=phi + jnp.sum(cost),
+            violation=violation,
+        )
+        return jax.tree.map(lambda n, o: jnp.where(converged | ~step_ok | (st.it >= max_iter), o, n), new, stop)
 
-    s0 = jnp.maximum(-stages(X, U, p)[2], 1e-2)
     mu_start = jnp.asarray(mu0, dtype)
     filt0 = jnp.full((_FILTER, 2), jnp.inf, dtype).at[:, 1].set(-jnp.inf)
     ne = jax.eval_shape(lambda: terminal(X[-1], data)).shape[0]
+    placeholder = jnp.ones((N, ng), dtype)  # the slacks and path multipliers, set on the first pass
     st = _State(
         X,
         U,
         p,
-        s0,
-        mu_start / s0,
+        placeholder,
+        placeholder,
         jnp.zeros((N, nx), dtype),
         jnp.zeros(ne, dtype),
         mu_start,
@@ -406,6 +434,9 @@ def solve_shooting(
         jnp.asarray(jnp.inf, dtype),
         jnp.asarray(False),
         jnp.asarray(False),
+        jnp.zeros((N, nx, nu), dtype),
+        jnp.asarray(jnp.nan, dtype),
+        jnp.asarray(jnp.nan, dtype),
     )
     # Every carry made to depend on the starting point (a select whose two branches are the
     # carry itself): under vmap each is then batched from the start, and the while loop's
@@ -414,12 +445,7 @@ def solve_shooting(
     # result (12 intervals, 8 starts): 22.5-23.1 s against 24.4 s, tracing 7.7-8.3 s against 9.1 s.
     same = X.ravel()[0] == X.ravel()[0]
     st = jax.tree.map(lambda a: jnp.where(same, a, a), st)
-    st = jax.lax.while_loop(lambda st: (~st.done) & (st.it < max_iter), body, st)
-    F, cost, g = stages(st.X, st.U, st.p)
-    e = terminal(st.X[-1], data)
-    violation = jnp.maximum(
-        jnp.maximum(jnp.max(jnp.abs(F - st.X)), jnp.max(jnp.abs(e), initial=0.0)), jnp.max(g, initial=0.0)
-    )
+    st = jax.lax.while_loop(lambda st: ~st.done, body, st)
     return ShootingSolution(
         jnp.concatenate([x0[None], st.X]),
         st.U,
@@ -427,9 +453,10 @@ def solve_shooting(
         st.y,
         st.yT,
         st.lam,
-        objective(st.p, data) + jnp.sum(cost),
-        violation,
+        st.objective,
+        st.violation,
         st.kkt,
         st.it,
         st.converged,
+        st.B,
     )

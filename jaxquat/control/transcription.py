@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from .. import _arrays, _quaternion, _rates
+from .. import _arrays, _quaternion
 from ..integration.fixed_step import solve_fixed_steps
 from ..integration.lie_solvers import RKMK4, BodyRateTerm
 from ..manifold.lie import minus, plus
@@ -146,6 +146,15 @@ def _grid(n: int, substeps: int, fractions, dtype) -> Array:
     return jnp.concatenate([inner.ravel(), edges[-1:]])
 
 
+def _inverse(inertia: Array) -> Array:
+    """``I^-1`` for symmetric ``I``, by the adjugate (row ``i`` is ``I^-1 e_i``). The stages'
+    fields take it once, outside the steps, and apply Euler's equations as 3x3 products: the
+    per-component solve of ``_rates.euler_body`` inside a stage took 570 of the 3460 operations
+    of a stage Hessian (the suite's 12-interval minimum-energy slew: 14.3 s from the call to
+    the compiled solver, 10.5 s with this and the switching function from the solver's Jacobian)."""
+    return _arrays.symmetric_solve(jnp.broadcast_to(inertia, (3, 3, 3)), jnp.eye(3, dtype=inertia.dtype))
+
+
 def held_torque_states(inertia, q0, w0, time, u, substeps: int, fractions=None):
     """Every state ``(q, w)`` of RKMK4 through the piecewise-constant torque ``u`` ``(n, 3)`` over
     ``[0, time]``, ``substeps`` steps per interval: ``(n * substeps + 1, 4)`` and ``(.., 3)``
@@ -158,8 +167,10 @@ def held_torque_states(inertia, q0, w0, time, u, substeps: int, fractions=None):
     the single-shooting solver among them) compiled slower, that solver's suite fixture 58.5 s
     against 45.8 s."""
 
+    inverse = _inverse(inertia)
+
     def field(t, y, u_k):  # the Lie-algebra form: the body rate itself on the quaternion leaf
-        return y[1], _rates.euler_body(inertia, y[1], u_k)
+        return y[1], inverse @ (u_k - jnp.cross(y[1], inertia @ y[1]))
 
     return _held(RKMK4(), field, (q0, w0), time, u, substeps, fractions)
 
@@ -170,10 +181,12 @@ def held_wheel_states(inertia, axes, q0, w0, h0, time, u, substeps: int, fractio
     interval, ``J w' = -A u - w x (J w + A h)``, ``h' = u``; returns ``(qs, ws, hs)`` on the flat
     grid, RKMK4 on the quaternion leaf."""
 
+    inverse = _inverse(inertia)
+
     def field(t, y, u_k):
         q, w, h = y
         total = inertia @ w + h @ axes
-        return w, _arrays.symmetric_solve(inertia, -(u_k @ axes) - jnp.cross(w, total)), u_k
+        return w, inverse @ (-(u_k @ axes) - jnp.cross(w, total)), u_k
 
     return _held(RKMK4(quaternions=(True, False, False)), field, (q0, w0, h0), time, u, substeps, fractions)
 
@@ -465,7 +478,7 @@ def solve(data: Data, cfg: Config, tol, max_iter: int, keys, init=None):
     first = jnp.tile(jnp.arange(S) == 0, B)
     flat = _batched(one, *jax.tree.map(pairs, (data, X, V, p)), jnp.tile(keys, (B, 1)), first)
     sols = jax.tree.map(lambda a: jnp.reshape(a, (B, S) + a.shape[1:]), flat)
-    return _batched(lambda d, s: _best(cfg, problem, d, s), data, sols)
+    return _batched(lambda d, s: _best(cfg, d, s), data, sols)
 
 
 def _batched(f, *args):
@@ -477,7 +490,7 @@ def _batched(f, *args):
     return jax.tree.map(lambda a: a[None], f(*jax.tree.map(lambda a: a[0], args)))
 
 
-def _best(cfg: Config, problem: ShootingProblem, data: Data, sols) -> ConstrainedReorientation:
+def _best(cfg: Config, data: Data, sols) -> ConstrainedReorientation:
     """One problem's result from its starts' solutions ``sols`` (leading axis: the starts)."""
     costs = _units(data)[1] * sols.objective  # the NLP minimises cost / S: back in physical units
     start_costs = jnp.where(sols.converged, costs, jnp.inf)
@@ -492,13 +505,10 @@ def _best(cfg: Config, problem: ShootingProblem, data: Data, sols) -> Constraine
     ts = _grid(N, m, fractions, data.q0.dtype) * T
     qs, ws, hs = _states(cfg, data, (data.q0, data.w0, data.h0), T, u, m, fractions)
 
-    def lam_dot_f(v, c, x, y, k):  # costate . F as a function of the scaled torque v
-        return y @ problem.stage(x, c.at[:nu].set(v), sol.p, data, k)[0]
-
-    # Per unit torque: d/du = d/dv / u_ref.
-    switching = (
-        jax.vmap(jax.grad(lam_dot_f))(sol.u[:, :nu], sol.u, sol.x[:-1], sol.costates, jnp.arange(N)) / data.u_ref[None]
-    )
+    # d(costate . F)/dv for the scaled torque v, from the solver's own Jacobian at the returned
+    # point (a reverse pass through the stage here cost 1.1 s of tracing and 1.9 s of compiling);
+    # per unit torque: d/du = d/dv / u_ref.
+    switching = jnp.einsum("ki,kij->kj", sol.costates, sol.control_jacobian[:, :, :nu]) / data.u_ref[None]
     torque = jnp.concatenate([jnp.repeat(u, m, axis=0), u[-1:]])
     return ConstrainedReorientation(
         T,
