@@ -107,6 +107,23 @@ def test_solve_shooting_matches_scipy_on_a_bounded_double_integrator():
     # The nodes are the rollout of the controls, and the multipliers of an active bound are positive.
     np.testing.assert_allclose(np.asarray(sol.x[-1]), final(np.asarray(sol.u[:, 0])), atol=1e-10)
     assert float(jnp.min(sol.path_multipliers)) >= 0
+    # The control Jacobian dx_{k+1}/du_k is the held control's (h^2/2, h) at every stage, and
+    # the objective is the cost of the returned controls.
+    np.testing.assert_allclose(np.asarray(sol.control_jacobian), np.broadcast_to([[0.5 * h * h], [h]], (n, 2, 1)))
+    np.testing.assert_allclose(float(sol.objective), cost(np.asarray(sol.u[:, 0])), rtol=1e-12)
+    # Stopped by max_iter, every field still belongs to the returned point (the loop ends on an
+    # evaluation there): its violation is the rollout's defects and terminal miss, its objective
+    # that point's cost.
+    early = jq.solve_shooting(
+        problem, x0, jnp.zeros((n, 2)), jnp.zeros((n, 1)), jnp.zeros(0), max_iter=2, hessian="forward"
+    )
+    assert int(early.iterations) == 2 and not bool(early.converged)
+    X, U = np.asarray(early.x), np.asarray(early.u[:, 0])
+    nxt = np.stack([X[:-1, 0] + h * X[:-1, 1] + 0.5 * h * h * U, X[:-1, 1] + h * U], -1)
+    expected = max(np.max(np.abs(nxt - X[1:])), np.max(np.abs(X[-1] - [1.0, 0.0])), np.max(np.abs(U)) - 5.0)
+    np.testing.assert_allclose(float(early.violation), expected, rtol=1e-12)
+    expected_cost = h * np.sum(U**2 + X[:-1, 0] ** 2 * X[:-1, 1] ** 2)
+    np.testing.assert_allclose(float(early.objective), expected_cost, rtol=1e-12)
 
 
 # ------------------------------------------------------------------ minimum energy
