@@ -83,6 +83,13 @@ def symmetric_solve(inertia: Array, b: Array) -> Array:
     )
 
 
+def symmetric_inverse(inertia: Array) -> Array:
+    """``I^-1`` ``(..., 3, 3)`` for symmetric ``I`` by :func:`symmetric_solve` against the unit
+    vectors (row ``j`` is ``I^-1 e_j``, which is column ``j`` as ``I^-1`` is symmetric): for
+    callers that apply one tensor's inverse many times (each integration step) as products."""
+    return symmetric_solve(inertia[..., None, :, :], jnp.eye(3, dtype=inertia.dtype))
+
+
 def valid_weights(weights: Array) -> Array:
     """Per set: every weight finite and non-negative, and their sum positive."""
     ok = jnp.all(jnp.isfinite(weights) & (weights >= 0), axis=-1)

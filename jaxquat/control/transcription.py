@@ -146,15 +146,6 @@ def _grid(n: int, substeps: int, fractions, dtype) -> Array:
     return jnp.concatenate([inner.ravel(), edges[-1:]])
 
 
-def _inverse(inertia: Array) -> Array:
-    """``I^-1`` for symmetric ``I``, by the adjugate (row ``i`` is ``I^-1 e_i``). The stages'
-    fields take it once, outside the steps, and apply Euler's equations as 3x3 products: the
-    per-component solve of ``_rates.euler_body`` inside a stage took 570 of the 3460 operations
-    of a stage Hessian (the suite's 12-interval minimum-energy slew: 14.3 s from the call to
-    the compiled solver, 10.5 s with this and the switching function from the solver's Jacobian)."""
-    return _arrays.symmetric_solve(jnp.broadcast_to(inertia, (3, 3, 3)), jnp.eye(3, dtype=inertia.dtype))
-
-
 def held_torque_states(inertia, q0, w0, time, u, substeps: int, fractions=None):
     """Every state ``(q, w)`` of RKMK4 through the piecewise-constant torque ``u`` ``(n, 3)`` over
     ``[0, time]``, ``substeps`` steps per interval: ``(n * substeps + 1, 4)`` and ``(.., 3)``
@@ -167,7 +158,11 @@ def held_torque_states(inertia, q0, w0, time, u, substeps: int, fractions=None):
     the single-shooting solver among them) compiled slower, that solver's suite fixture 58.5 s
     against 45.8 s."""
 
-    inverse = _inverse(inertia)
+    # I^-1 once, outside the steps, and Euler's equations as 3x3 products: the per-component
+    # solve of _rates.euler_body inside a stage took 570 of the 3460 operations of a stage Hessian
+    # (the suite's 12-interval minimum-energy slew: 14.3 s from the call to the compiled solver,
+    # 10.5 s with this and the switching function from the solver's control Jacobian).
+    inverse = _arrays.symmetric_inverse(inertia)
 
     def field(t, y, u_k):  # the Lie-algebra form: the body rate itself on the quaternion leaf
         return y[1], inverse @ (u_k - jnp.cross(y[1], inertia @ y[1]))
@@ -181,7 +176,7 @@ def held_wheel_states(inertia, axes, q0, w0, h0, time, u, substeps: int, fractio
     interval, ``J w' = -A u - w x (J w + A h)``, ``h' = u``; returns ``(qs, ws, hs)`` on the flat
     grid, RKMK4 on the quaternion leaf."""
 
-    inverse = _inverse(inertia)
+    inverse = _arrays.symmetric_inverse(inertia)  # as in held_torque_states
 
     def field(t, y, u_k):
         q, w, h = y

@@ -129,8 +129,7 @@ class EulerEquations:
             self.moments = split(m)
             self.inverse = split(1 / m)
         else:
-            eye = jnp.eye(3, dtype=inertia.dtype)
-            inv = _arrays.symmetric_solve(inertia[..., None, :, :], eye)  # row j: I^-1 e_j (symmetric)
+            inv = _arrays.symmetric_inverse(inertia)
             self.tensor = tuple(split(inertia[..., i, :]) for i in range(3))
             self.inverse_tensor = tuple(split(inv[..., i, :]) for i in range(3))
 
