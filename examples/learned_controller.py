@@ -4,8 +4,9 @@ Body: J = diag(1, 1.5, 2), body torque bounded by |u_i| <= 1 (a tanh output laye
 Controller: u = tanh(MLP(x)), x = (sign(q_w) q_vec, omega): the quaternion is put on
 the hemisphere q_w >= 0 so the law treats q and -q alike. The MLP (2 hidden layers
 of 32, tanh) starts as a small random network and is trained with optax Adam
-through jaxquat.simulate (RKMK4, dt = 0.05, T = 10 s) on batches of random
-attitudes and rates; the loss is the time average of |to_rotvec(q)|^2 + 0.1 |omega|^2
+through jaxquat.simulate (RKMK4, dt = 0.05, T = 10 s; NumPy times, so simulate steps in a
+lax.scan rather than diffeqsolve: the whole run 50.9 s against 57.7 s, the same 75.3 %, on a
+2-core CPU) on batches of random attitudes and rates; the loss is the time average of |to_rotvec(q)|^2 + 0.1 |omega|^2
 + 0.01 |u|^2 over the batch. Gradients flow through the whole batched
 simulation (the torque function is vmapped over the bodies by simulate).
 
@@ -58,7 +59,7 @@ def rollout(params, q0, w0):
         q0,
         w0,
         INERTIA,
-        jnp.asarray(TS, q0.dtype),
+        np.asarray(TS, q0.dtype),  # concrete: simulate takes its scan path (no diffeqsolve)
         torque=lambda t, q, w, p: policy(p, q, w),
         args=params,
         solver=jq.RKMK4(),
