@@ -10,7 +10,11 @@ compiling; the benchmarks run XLA's defaults) and, where a fusion evaluates in a
 rounding, on which no assertion may depend. ``--xla_backend_optimization_level=0`` as well
 would have saved more (the float64 pass 6m35 instead of 11m02) but together with this flag it
 computed wrong float32 results (| |q| - 1 | up to 1.5e-5 in 637 of 10^4 closed-form torque-free
-states, against 2.1e-7 with either flag alone), so it is not used. Set
+states, against 2.1e-7 with either flag alone), so it is not used. The flag also hides
+what a user meets under the defaults: in session 23 the scan path's backward step with an MLP
+torque compiled there to a kernel of 0.65 s per step (fixed), so
+``test_gradient_of_a_learned_torque_under_xla_defaults_matches_finite_differences`` runs its
+gradients in a subprocess with XLA's defaults. Set
 ``JAXQUAT_TEST_XLA_DEFAULTS=1`` to run the suite with XLA's default flags (the whole suite passed
 with them before the flag was set).
 The flag is appended to any ``XLA_FLAGS`` already set, before JAX creates its CPU backend, and
