@@ -11,8 +11,9 @@ rounding, on which no assertion may depend. ``--xla_backend_optimization_level=0
 would have saved more (the float64 pass 6m35 instead of 11m02) but together with this flag it
 computed wrong float32 results (| |q| - 1 | up to 1.5e-5 in 637 of 10^4 closed-form torque-free
 states, against 2.1e-7 with either flag alone), so it is not used. The flag also hides
-what a user meets under the defaults: in session 23 the scan path's backward step with an MLP
-torque compiled there to a kernel of 0.65 s per step (fixed), so
+what a user meets under the defaults: the scan path's step with a torque compiled there to
+kernels that stalled (an MLP, 0.65 s per backward step of 16 bodies, fixed in session 23;
+element-wise laws, the gradient of 1000 bodies x 100 steps in 32-40 s, fixed in session 24), so
 ``test_gradient_of_a_learned_torque_under_xla_defaults_matches_finite_differences`` runs its
 gradients in a subprocess with XLA's defaults. Set
 ``JAXQUAT_TEST_XLA_DEFAULTS=1`` to run the suite with XLA's default flags (the whole suite passed

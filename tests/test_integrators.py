@@ -403,7 +403,9 @@ def test_the_lie_solvers_scan_path_is_the_struct_of_arrays_step(monkeypatch):
 
 
 def test_scan_path_gradient_and_unit_norm_in_float32_too():
-    """Reverse mode through the scan path (jax.checkpoint per step) equals forward mode, and the
+    """Reverse mode through the scan path (jax.checkpoint per step) equals forward mode, torque-free
+    and with a PD torque whose gains are in ``args`` (its rows and columns pass through
+    ``struct_of_arrays``' products, whose derivative rule must serve both modes), and the
     per-step Newton renormalisation holds | |q| - 1 | at rounding level over 2000 steps."""
     inertia = jnp.diag(jnp.asarray(I_DIAG, DTYPE))
     q0 = jq.identity((), DTYPE)
@@ -416,17 +418,28 @@ def test_scan_path_gradient_and_unit_norm_in_float32_too():
     rev = jax.grad(loss)(w0)
     fwd = jax.jacfwd(loss)(w0)
     assert_close(rev, fwd, tol=1e-9 if X64 else 1e-3, what="grad")
+
+    def pd(t, q, w, gains):
+        return -gains[0] * jnp.sign(q[0]) * q[1:] - gains[1] * w
+
+    def controlled(gains):
+        sim = jq.simulate(q0, w0, inertia, np.asarray([0.0, 2.0]), torque=pd, args=gains, solver=jq.RKMK4(), dt0=0.01)
+        return jnp.sum(sim.q[-1, 1:] ** 2) + jnp.sum(sim.omega[-1] ** 2)
+
+    gains = jnp.asarray([0.5, 0.3], DTYPE)
+    assert_close(jax.grad(controlled)(gains), jax.jacfwd(controlled)(gains), tol=1e-9 if X64 else 1e-3, what="gains")
     q = jq.simulate(q0, jnp.asarray([0.3, -2.0, 1.1], DTYPE), inertia, ts, solver=jq.RKMK4(), dt0=0.01).q
     drift = float(jnp.abs(jq.norm(q) - 1).max())
     assert drift < (1e-14 if X64 else 5e-7), drift
 
 
-# A learned torque (an MLP with its weights in ``args``) under XLA's default flags, in float64:
-# the suite's own processes compile with the legacy emitters (tests/conftest.py), which hid both
-# defects this checks. The scan path's backward step compiled (fusion emitters) to a kernel of
-# 0.65 s per step for 16 bodies, so this 1000-step gradient would take about 750 s (the whole
-# script now runs in about 13 s, most of it compiling); and diffrax 0.7.1-0.7.2 returned a gradient 2.6 % off
-# under jit on the diffeqsolve path (ConstantStepSize, SaveAt(ts), the default adjoint).
+# A learned torque (an MLP with its weights in ``args``) and an element-wise PD law (its gains in
+# ``args``) under XLA's default flags, in float64: the suite's own processes compile with the
+# legacy emitters (tests/conftest.py), which hid the defects this checks. The scan path's
+# backward step compiled (fusion emitters) to a kernel of 0.65 s per step for 16 bodies with the
+# MLP, and of about 0.48 s per step with the PD law (struct_of_arrays._columns_by_products), so
+# either 1000-step gradient would take minutes; and diffrax 0.7.1-0.7.2 returned a gradient
+# 2.6 % off under jit on the diffeqsolve path (ConstantStepSize, SaveAt(ts), the default adjoint).
 LEARNED_TORQUE_SCRIPT = r"""
 import os
 os.environ.pop("XLA_FLAGS", None)
@@ -456,6 +469,21 @@ fd = (cost(step(1e-6)) - cost(step(-1e-6))) / 2e-6
 for path, kw in [("scan", {}), ("diffeqsolve", dict(adjoint=diffrax.RecursiveCheckpointAdjoint()))]:
     g = jax.jit(jax.grad(lambda p: cost(p, **kw)))(params)
     print(path, float(sum(jnp.vdot(a, b) for a, b in zip(jax.tree.leaves(g), jax.tree.leaves(d)))), float(fd))
+
+# an element-wise law: PD on the error to a target attitude, the gains in args (scan path)
+target = jq.random(k[4], ())
+
+def pd(t, q, w, gains):
+    e = jq.multiply(jq.conjugate(target), q)
+    return -gains[0] * jnp.sign(e[0]) * e[1:] - gains[1] * w
+
+def pd_cost(gains):
+    sim = jq.simulate(q0, w0, inertia, ts, torque=pd, args=gains, solver=jq.RKMK4(), dt0=0.05)
+    return jnp.mean(jnp.sum(sim.q[..., 1:] ** 2, -1)) + 0.1 * jnp.mean(jnp.sum(sim.omega**2, -1))
+
+gains, dg = jnp.asarray([0.3, 0.5]), jnp.asarray([0.6, -0.8])
+fd = (pd_cost(gains + 1e-6 * dg) - pd_cost(gains - 1e-6 * dg)) / 2e-6
+print("elementwise", float(jnp.vdot(jax.jit(jax.grad(pd_cost))(gains), dg)), float(fd))
 """
 
 
@@ -463,17 +491,17 @@ for path, kw in [("scan", {}), ("diffeqsolve", dict(adjoint=diffrax.RecursiveChe
 def test_gradient_of_a_learned_torque_under_xla_defaults_matches_finite_differences():
     """``jit(grad)`` through ``simulate`` of a cost of 16 bodies over 1000 RKMK4 steps, the torque
     an MLP of the state with its weights in ``args``, on the scan path and through
-    ``diffeqsolve``, against a central difference along a random direction of the weights
-    (measured 7.4e-9 relative on both paths, the central difference's own error; the bound
-    1e-6). The 240 s limit of the subprocess catches the slow kernel (about 750 s); the run
-    takes about 15 s here."""
+    ``diffeqsolve``, and a PD law on the scan path, against a central difference along a random
+    direction of the weights or gains (measured 7.4e-9 relative on both MLP paths, the central
+    difference's own error; the bound 1e-6). The 240 s limit of the subprocess catches the slow
+    kernels (about 750 s and 480 s); the run takes about 15 s here."""
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_ENABLE_X64")}
     out = subprocess.run(
         [sys.executable, "-c", LEARNED_TORQUE_SCRIPT], capture_output=True, text=True, env=env, timeout=240
     )
     assert out.returncode == 0, out.stderr[-3000:]
     lines = dict(line.split(maxsplit=1) for line in out.stdout.splitlines())
-    assert set(lines) == {"scan", "diffeqsolve"}, out.stdout
+    assert set(lines) == {"scan", "diffeqsolve", "elementwise"}, out.stdout
     for path, pair in lines.items():
         ad, fd = (float(x) for x in pair.split())
         assert abs(ad - fd) <= 1e-6 * abs(fd), (path, ad, fd)

@@ -25,9 +25,12 @@ forward and 1331 ms gradient).
 
 from __future__ import annotations
 
+import functools
+import operator
 from collections.abc import Callable, Sequence
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -146,23 +149,70 @@ class EulerEquations:
         return self._apply(self.inverse_tensor, rhs)
 
     def __call__(self, t, q: Comps, w: Comps, args) -> Comps:
-        tau = None if self.torque is None else _columns_by_products(self.torque(t, stack(q), stack(w), args))
-        return self.acceleration(w, tau)
+        if self.torque is None:
+            return self.acceleration(w, None)
+        tau = self.torque(t, _rows_by_products(q), _rows_by_products(w), args)
+        return self.acceleration(w, _columns_by_products(tau))
+
+
+def _rows_by_products(c: Comps) -> Array:
+    """:func:`stack` of the components ``c`` as ``sum_i c_i e_i^T`` (exact for finite values), the
+    rows handed to the user's torque.
+
+    Not :func:`stack`: its concatenation, fused with the stage's element-wise computation, was
+    compiled by XLA's CPU fusion emitters (jaxlib 0.10.2, its default) into a kernel that
+    re-evaluates the stage once per use in the torque. Measured, the forward pass of 1000 bodies
+    x 100 RKMK4 steps, float32, this 2-core CPU (one run each; at this size timings vary up to
+    2x between runs; ``docs/integrators.md`` has the table): with the stack 5-640 ms over eight
+    torque laws, 15-57x the legacy emitters' for four of them (a saturated PD law 180 against
+    11.7 ms, the space frame 633 against 11.1 ms); with these products 2.2-17.7 ms. The one law
+    slower with them, ``-k_p sign(q_w) q_v - k_d w``: 9.0 against 17.7 ms. Also tried: products
+    for ``q`` only (17-23 ms on four laws), for ``w`` only (90-229 ms), the stack times the
+    identity (238-257 ms)."""
+    eye = jnp.eye(len(c), dtype=c[0].dtype).reshape((1,) * c[0].ndim + (len(c), len(c)))
+    terms = [x[..., None] * eye[..., i, :] for i, x in enumerate(c)]
+    return functools.reduce(operator.add, terms)
 
 
 def _columns_by_products(x: Array) -> Comps:
     """The components of ``x`` ``(n, k)`` as :func:`split`, each by a product with a column of the
-    identity (``x e_i``: exact for finite ``x``).
+    identity (``x e_i``: exact for finite ``x``), with the cotangent gathered back through a
+    matrix product (:func:`_gather_by_product`).
 
-    Not :func:`split`, whose slices transpose to pads: in the backward step the pad-and-add that
-    gathers the user torque's cotangent was fused (XLA's CPU fusion emitters, jaxlib 0.10.2, its
-    default) with the whole rematerialised RKMK4 step into one kernel that took 0.65 s per step
-    for 16 bodies (a torque linear in the state through a matrix in ``args``, ``jit(grad)`` of a
-    2-step solve: 1.33 s; 0.2 ms with the legacy emitters): training an MLP torque through
-    ``simulate``'s scan path seemed to hang. A product's transpose is a product, which the
-    fusion stops at: 0.3 ms. ``tests/test_integrators.py`` checks it under XLA's defaults."""
+    Not :func:`split`: under XLA's CPU fusion emitters (jaxlib 0.10.2, its default) the backward
+    step fused the torque's cotangent, gathered by element-wise ops (the pads that transpose the
+    slices, or the broadcast products that transpose these products), with the whole
+    rematerialised RKMK4 step into one kernel whose subgraphs are re-evaluated once per use: in
+    the generated code the calls of one subgraph multiply with the stages. Training an MLP
+    torque through ``simulate``'s scan path seemed to hang (0.65 s per step for 16 bodies); the
+    products in the forward pass fixed that case (0.3 ms) but not element-wise laws: the
+    gradient of 1000 bodies x 100 steps took 32-40 s for five of eight laws tried, 21-50 ms
+    now (``docs/integrators.md``). ``tests/test_integrators.py`` checks an MLP and a PD law
+    under XLA's defaults."""
+    x = _gather_by_product(x)
     eye = jnp.eye(x.shape[-1], dtype=x.dtype)
     return tuple(x @ eye[:, i] for i in range(x.shape[-1]))
+
+
+@jax.custom_jvp
+def _gather_by_product(x: Array) -> Array:
+    """The identity on ``x`` ``(n, k)``, whose tangent is ``dx @ I_k``, so that reverse mode
+    transposes it to ``ct @ I_k``: a product with a contraction, which XLA neither fuses nor
+    rewrites as element-wise, so every kernel of the backward step ends at the torque's
+    cotangent (a ``custom_jvp``, not a ``custom_vjp``, so forward mode works too). Tried and not
+    enough, ``jit(grad)`` of 16 bodies x 2 steps of ``-k_p sign(q_w) q_v - k_d w``: the product
+    in front of :func:`split` instead of the column products (1.4 s), a stack of the
+    cotangent's columns before the product (1.37 s: the stack fused instead),
+    ``lax.optimization_barrier`` in the backward pass (XLA's CPU pipeline drops it before
+    fusion: 0.92 s); the product in the forward pass as well worked but cost the forward pass
+    (198 against 88 ms for 1000 bodies x 1000 steps, one run)."""
+    return x
+
+
+@_gather_by_product.defjvp
+def _gather_jvp(primals: tuple[Array], tangents: tuple[Array]) -> tuple[Array, Array]:
+    (x,), (dx,) = primals, tangents
+    return x, dx @ jnp.eye(dx.shape[-1], dtype=dx.dtype)
 
 
 class Tableau:
