@@ -102,6 +102,41 @@ def test_bad_tensors_raise_named_errors_and_fail_the_jit_check(case):
         jq.angular_acceleration(jq.identity(3, DTYPE), jnp.ones((3, 3), DTYPE), jnp.asarray(batch, DTYPE))
 
 
+def test_the_eager_check_agrees_with_the_jit_check_at_each_boundary():
+    """check_inertia passes clearly valid concrete tensors in NumPy (no compilation on a first
+    call) and leaves the rest to the jitted is_valid_inertia; its verdict must be the jitted
+    one, tensor by tensor, on tensors placed around each condition's threshold (relative offsets
+    from -4 to 4 tolerances: the triangle inequality, positive definiteness, symmetry; also
+    rotated off the principal axes). NumPy's verdict alone differed at one tensor in float32
+    (an ulp of the eigenvalues); the margin must pass every tensor far from the thresholds."""
+    from jaxquat.mechanics.inertia import _clearly_valid, _default_rtol, _is_valid_concrete
+
+    rtol = _default_rtol(jnp.dtype(DTYPE))
+    offsets = np.linspace(-4.0, 4.0, 33) * rtol
+    rng = np.random.default_rng(7)
+    tensors = []
+    for d in offsets:
+        tensors.append(np.diag([1.0, 2.0, 3.0 * (1 + d)]))  # I3 = (I1 + I2)(1 + d)
+        tensors.append(np.diag([3.0 * (1 + d) * rtol, 2.0, 3.0]))  # I1 = (1 + d) rtol I3
+        a = np.diag([1.0, 2.0, 2.5])
+        a[0, 1] += 2.5 * rtol * (1 + d)  # |I - I^T| = (1 + d) rtol s
+        tensors.append(a)
+    r = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    tensors += [r @ t @ r.T for t in tensors[: len(offsets) * 2]]
+    batch = jnp.asarray(np.stack(tensors), DTYPE)
+    compiled = np.asarray(jax.jit(jq.is_valid_inertia)(batch))
+    assert 0 < int(compiled.sum()) < len(tensors)  # both verdicts occur
+    assert _is_valid_concrete(batch, rtol).tolist() == compiled.tolist()
+    clear = _clearly_valid(batch, rtol)
+    assert not np.any(clear & ~compiled)  # clearly valid is valid
+    far = np.abs(offsets) >= 2 * rtol  # two tolerances or more from the threshold
+    assert clear[: 3 * len(offsets)].reshape(-1, 3)[far & (offsets < 0), 0].all()  # triangle: the valid side
+    assert _clearly_valid(jnp.asarray(random_inertias(16), DTYPE), rtol).all()
+    first_bad = int(np.argmin(compiled))
+    with pytest.raises(ValueError, match=rf"batch index \({first_bad},\)"):
+        jq.check_inertia(batch)
+
+
 def test_check_inertia_inside_jit_points_to_the_jit_helper():
     with pytest.raises(TypeError, match="is_valid_inertia"):
         jax.jit(jq.check_inertia)(jnp.eye(3, dtype=DTYPE))
