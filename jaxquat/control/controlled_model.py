@@ -51,7 +51,8 @@ class ControlledModel(NamedTuple):
     ``extra_final`` ``(m,)``: ``z(T)`` where given (NaN entries stay free); a quaternion's four
     entries are all given (a unit quaternion, reached up to sign: ``vec(pf* p(T)) = 0``) or all
     NaN. Leave free what the dynamics already fix (a conserved momentum, a state slaved to
-    ``q``): a redundant final condition makes the Newton systems singular.
+    ``q``): a redundant final condition makes the Newton systems singular (a failed solve's error
+    names such entries).
 
     The solvers' ``inertia`` is still needed: with the control matrix ``B = dw'/du`` at the
     initial state it gives the body torques the controls can exert, ``|J B| b``, from which the

@@ -22,7 +22,7 @@ from jaxtyping import ArrayLike, Float
 from .. import _checks
 from ..manifold.lie import minus
 from ..mechanics.inertia import validated
-from . import controlled_model
+from . import controlled_model, transcription
 from .controlled_model import ControlledModel
 from .transcription import Config, ConstrainedReorientation, Data, Warm, solve
 
@@ -391,8 +391,26 @@ def _run(
                 f"{float(np.max(np.asarray(out.kkt_residual)[bad])):.3g}, violation "
                 f"{float(np.max(np.asarray(out.violation)[bad])):.3g}). Try more intervals, max_iter, or a smaller "
                 "tol; check that the constraints admit a solution. Pass throw=False to get the last iterate."
+                + _redundancy_hint(cfg, data, out, int(np.flatnonzero(bad.ravel())[0]))
             )
     return out
+
+
+def _redundancy_hint(cfg, data, out, i: int) -> str:
+    """For a user model with ``extra_final``: which given entries the dynamics already imply at
+    problem ``i``'s last iterate (:func:`transcription.redundant_final`), as a sentence, or ''."""
+    if cfg.model is None or not any(cfg.model_fixed):
+        return ""
+    one = jax.tree.map(lambda a: a[i], data)
+    time, controls = (jnp.reshape(a, (-1,) + a.shape[out.time.ndim :])[i] for a in (out.time, out.controls))
+    redundant = transcription.redundant_final(cfg, one, time, controls)
+    if not redundant:
+        return ""
+    return (
+        f" model.extra_final gives entries {redundant} (an extra quaternion by its first entry) that the "
+        "dynamics already imply (a conserved quantity, or a state slaved to q): their terminal conditions "
+        "add no rank to the others', which leaves the Newton systems singular; leave them NaN (free)."
+    )
 
 
 def scales(inertia, q0, qf, w0, wf, duration_or_bound, min_time: bool):

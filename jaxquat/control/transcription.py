@@ -34,6 +34,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 from .. import _arrays, _quaternion
@@ -532,3 +533,50 @@ class Warm(NamedTuple):
     omega: Array
     torque: Array
     h: Array | None = None  # the wheel momenta of a reaction-wheel result
+
+
+def redundant_final(cfg: Config, data: Data, time, u) -> list[int]:
+    """The given entries of a user model's ``z(T)`` (``extra_final``; an extra quaternion by its
+    first index) whose terminal conditions the dynamics already imply, at the controls ``u``
+    ``(N, n)`` and final time ``time`` of one problem (NumPy, after a solve).
+
+    The terminal conditions, ``vec(qf* q(T)) = 0``, ``w(T) = wf`` and the given entries of
+    ``z(T)`` (``vec(pf* p(T)) = 0`` for a quaternion), are differentiated by reverse mode through
+    the re-integrated trajectory with respect to the controls (and the time when it is free).
+    An entry is redundant when its rows do not raise the rank of that Jacobian (rows scaled to
+    unit length, singular values below ``sqrt(eps)`` of the largest counted as zero): a conserved
+    quantity, or a state slaved to ``q``, whose condition leaves the Newton-KKT systems singular.
+    """
+    m = cfg.substeps
+    fractions = None if cfg.uniform else data.fractions
+    k = cfg.model_quaternions
+    fixed = np.asarray(cfg.model_fixed, bool)
+    groups = [(4 * j, 3) for j in range(k) if fixed[4 * j]] + [(i, 1) for i in range(4 * k, fixed.size) if fixed[i]]
+    if not groups:
+        return []
+    terminal = _cached_problem(cfg).terminal  # its rows: q's 3, w's 3, then the groups in order
+
+    def conditions(u_, t_):
+        qs, ws, zs = _states(cfg, data, (data.q0, data.w0, data.h0), t_, u_, m, fractions)
+        return terminal(jnp.concatenate([qs[-1], ws[-1] / data.w_ref, zs[-1] / data.h_ref]), data)
+
+    # one compiled program: eagerly, op by op, this took 25 s for a 10-interval problem
+    jac_u, jac_t = jax.jit(jax.jacrev(conditions, argnums=(0, 1)))(jnp.asarray(u), jnp.asarray(time))
+    J = np.asarray(jac_u).reshape(jac_u.shape[0], -1)
+    if cfg.min_time:
+        J = np.concatenate([J, np.asarray(jac_t).reshape(-1, 1)], axis=1)
+    norms = np.linalg.norm(J, axis=1, keepdims=True)
+    J = np.where(norms > 0, J / np.where(norms > 0, norms, 1.0), 0.0)
+
+    def rank(rows: np.ndarray) -> int:
+        s = np.linalg.svd(rows, compute_uv=False)
+        return int(np.sum(s > np.sqrt(np.finfo(rows.dtype).eps) * (float(s[0]) if s.size else 0.0)))
+
+    full = rank(J)
+    redundant, offset = [], 6
+    for start, size in groups:
+        others = np.delete(J, np.arange(offset, offset + size), axis=0)
+        if rank(others) + size > full:
+            redundant.append(start)
+        offset += size
+    return redundant
