@@ -113,6 +113,32 @@ def jaxquat_rkmk4(q0, w0):
     ).q[..., -1, :]
 
 
+PD_GAINS = (0.5, 0.8)
+
+
+def _pd_torque(t, q, w, gains):
+    """A PD law towards the identity, ``-k_p sign(q_w) q_v - k_d w``, its gains in ``args``: the
+    element-wise kind of torque whose gradient stalled under XLA's default CPU emitters until
+    session 24 (``docs/integrators.md``)."""
+    return -gains[0] * jnp.where(q[0] < 0, -1.0, 1.0) * q[1:] - gains[1] * w
+
+
+def jaxquat_rkmk4_pd(q0, w0):
+    """:func:`jaxquat_rkmk4` with :func:`_pd_torque` acting."""
+    ts = np.asarray([0.0, STEPS * DT], q0.dtype)
+    return jq.simulate(
+        q0,
+        w0,
+        jnp.diag(jnp.asarray(MOMENTS, q0.dtype)),
+        ts,
+        torque=_pd_torque,
+        args=jnp.asarray(PD_GAINS, q0.dtype),
+        solver=jq.RKMK4(),
+        dt0=DT,
+        max_steps=STEPS + 4,
+    ).q[..., -1, :]
+
+
 def mjx_contender():
     """MJX free body with the same moments (None if mujoco-mjx is not installed)."""
     try:
@@ -180,8 +206,9 @@ def throughput(batches, repeats):
 def gradient_table(batches, repeats):
     """Forward pass, reverse mode (``jax.grad`` of a final-attitude loss), forward mode (one
     ``jax.jvp`` tangent on ``w0``, and ``jax.jacfwd`` with 3 columns: a rate offset shared by
-    the batch) for jaxquat's RKMK4 and the hand RK4, float32 and float64: ``(dtype, batch,
-    contender, forward, reverse, jvp, jacfwd)`` in seconds."""
+    the batch) for jaxquat's RKMK4 (torque-free, and with a PD torque law) and the hand RK4
+    (torque-free), float32 and float64: ``(dtype, batch, contender, forward, reverse, jvp,
+    jacfwd)`` in seconds."""
     rows = []
     for dtype in (F32, jnp.float64):
         for n in batches:
@@ -191,6 +218,7 @@ def gradient_table(batches, repeats):
             warm = 1 if n > 10_000 else 2
             for name, run in (
                 ("jaxquat simulate, RKMK4", jaxquat_rkmk4),
+                ("jaxquat simulate, RKMK4, PD torque", jaxquat_rkmk4_pd),
                 ("hand-written RK4, checkpointed", hand_rk4_checkpointed),
             ):
                 rows.append((jnp.dtype(dtype).name, n, name, *_autodiff_times(run, q0, w0, target, repeats, warm)))
@@ -259,7 +287,8 @@ def markdown(rows, grad_rows, compiled, imported):
     first_sim, first_step = compiled
     by = {(n, name): rate for n, name, rate, *_ in rows}
     lines = [
-        f"Torque-free bodies, moments (1, 2, 3), float32, dt = {DT}, {STEPS} steps; {machine()}. "
+        f"Torque-free bodies (the autodiff table also has a PD torque law), moments (1, 2, 3), float32, dt = {DT}, "
+        f"{STEPS} steps; {machine()}. "
         "Error: attitude error at T = 10 against `euler_poinsot` (float64), largest and median over the batch.",
         "",
         "| batch | contender | body-steps/s | vs hand RK4 | final error, max (rad) | median (rad) | max "
