@@ -98,10 +98,23 @@ def _default_rtol(dtype) -> float:
     return float(np.sqrt(np.finfo(np.dtype(dtype)).eps)) if dtype != jnp.bfloat16 else 0.0884
 
 
-def _moments(inertia: Array) -> Array:
-    """Principal moments (ascending) of the symmetric part, in float32 or wider (no half-precision eigh)."""
-    work = inertia.astype(_checks.working_dtype(inertia.dtype))
-    return jnp.linalg.eigvalsh(0.5 * (work + jnp.swapaxes(work, -1, -2)))
+def _validity(xp: Any, inertia: Any, rtol: Any, slack: Any = 0.0) -> Any:
+    """The conditions of :func:`is_valid_inertia` with array module ``xp`` (``jax.numpy``, or
+    ``numpy`` for concrete values), each to hold by ``slack`` beyond its threshold (0: exactly
+    :func:`is_valid_inertia`'s). The moments in float32 or wider (no half-precision ``eigh``)."""
+    finite = xp.all(xp.isfinite(inertia), axis=(-2, -1))
+    clean = xp.where(finite[..., None, None], inertia, xp.broadcast_to(xp.eye(3, dtype=inertia.dtype), inertia.shape))
+    scale = xp.max(xp.abs(clean), axis=(-2, -1))
+    asym = xp.max(xp.abs(clean - xp.swapaxes(clean, -1, -2)), axis=(-2, -1))
+    work = clean.astype(_checks.working_dtype(inertia.dtype))
+    lam = xp.linalg.eigvalsh(0.5 * (work + xp.swapaxes(work, -1, -2)))
+    lo, mid, hi = lam[..., 0], lam[..., 1], lam[..., 2]
+    return (
+        finite
+        & (asym + slack <= rtol * scale)
+        & (lo - slack > rtol * (hi + slack))
+        & (hi + slack <= (lo + mid - 2 * slack) * (1 + rtol))
+    )
 
 
 def is_valid_inertia(inertia: Float[ArrayLike, "*batch 3 3"], rtol: float | None = None) -> Bool[Array, "*batch"]:
@@ -115,16 +128,7 @@ def is_valid_inertia(inertia: Float[ArrayLike, "*batch 3 3"], rtol: float | None
     """
     inertia = _checks.inertia(inertia)
     rtol = _default_rtol(inertia.dtype) if rtol is None else rtol
-    finite = jnp.all(jnp.isfinite(inertia), axis=(-2, -1))
-    clean = jnp.where(
-        finite[..., None, None], inertia, jnp.broadcast_to(jnp.eye(3, dtype=inertia.dtype), inertia.shape)
-    )
-    scale = jnp.max(jnp.abs(clean), axis=(-2, -1))
-    asym = jnp.max(jnp.abs(clean - jnp.swapaxes(clean, -1, -2)), axis=(-2, -1))
-    lam = _moments(clean)
-    lo, mid, hi = lam[..., 0], lam[..., 1], lam[..., 2]
-    ok = finite & (asym <= rtol * scale) & (lo > rtol * hi) & (hi <= (lo + mid) * (1 + rtol))
-    return ok
+    return _validity(jnp, inertia, rtol)
 
 
 # is_valid_inertia as one compiled program, for the tensors that _clearly_valid cannot pass
@@ -132,26 +136,16 @@ _is_valid_compiled = jax.jit(is_valid_inertia, static_argnames="rtol")
 
 
 def _clearly_valid(inertia: Array, rtol: float) -> np.ndarray:
-    """Whether each concrete tensor passes :func:`is_valid_inertia` with a margin that no
-    difference between NumPy's and XLA's ``eigvalsh`` can cross: each condition by at least
-    ``32 eps`` times the largest entry beyond its threshold (the two eigensolvers' moments differ
-    by an ulp or two: float32, a tensor on the triangle inequality's threshold, 3.001036 against
-    3.0010357, which flipped the verdict). False leaves the verdict to XLA."""
-    m = np.asarray(inertia, dtype=np.dtype(_checks.working_dtype(inertia.dtype)))
-    finite = np.all(np.isfinite(m), axis=(-2, -1))
-    clean = np.where(finite[..., None, None], m, np.eye(3, dtype=m.dtype))
-    scale = np.max(np.abs(clean), axis=(-2, -1))
-    asym = np.max(np.abs(clean - np.swapaxes(clean, -1, -2)), axis=(-2, -1))
-    lam = np.linalg.eigvalsh(0.5 * (clean + np.swapaxes(clean, -1, -2)))
-    lo, mid, hi = lam[..., 0], lam[..., 1], lam[..., 2]
-    slack = 32 * np.finfo(m.dtype).eps * scale
-    rtol = m.dtype.type(rtol)
-    return (
-        finite
-        & (asym + slack <= rtol * scale)
-        & (lo - slack > rtol * (hi + slack))
-        & (hi + slack <= (lo + mid - 2 * slack) * (1 + rtol))
-    )
+    """Whether each concrete tensor passes :func:`is_valid_inertia` (its conditions evaluated in
+    NumPy) with a margin that no difference between NumPy's and XLA's ``eigvalsh`` can cross:
+    each condition by at least ``32 eps`` times the largest entry beyond its threshold (the two
+    eigensolvers' moments differ by an ulp or two: float32, a tensor on the triangle
+    inequality's threshold, 3.001036 against 3.0010357, which flipped the verdict). False leaves
+    the verdict to XLA."""
+    m = np.asarray(inertia)
+    eps = np.finfo(np.dtype(_checks.working_dtype(m.dtype))).eps
+    slack = 32 * eps * np.max(np.abs(np.where(np.isfinite(m), m, 0)), axis=(-2, -1))
+    return np.asarray(_validity(np, m, m.dtype.type(rtol), slack.astype(m.dtype)))
 
 
 def _is_valid_concrete(inertia: Array, rtol: float) -> np.ndarray:
