@@ -560,7 +560,7 @@ def redundant_final(cfg: Config, data: Data, time, u) -> list[int]:
         qs, ws, zs = _states(cfg, data, (data.q0, data.w0, data.h0), t_, u_, m, fractions)
         return terminal(jnp.concatenate([qs[-1], ws[-1] / data.w_ref, zs[-1] / data.h_ref]), data)
 
-    # one compiled program: 5.9 s with its compilation for a 12-interval problem (op by op, the
+    # one compiled program: 5.9 s with its compilation for a 10-interval problem (op by op, the
     # failed call that runs it took 1.2 s longer: 39.7 s against 38.5 s, one run each)
     jac_u, jac_t = jax.jit(jax.jacrev(conditions, argnums=(0, 1)))(jnp.asarray(u), jnp.asarray(time))
     J = np.asarray(jac_u).reshape(jac_u.shape[0], -1)
