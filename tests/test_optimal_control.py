@@ -579,6 +579,19 @@ def test_a_given_final_payload_attitude_is_reached_at_the_least_energy():
     )
 
 
+def test_an_independent_final_condition_is_not_named_when_the_solve_fails():
+    """The gimballed payload's final attitude is independent of ``qf`` (the gimbal turns it), so
+    when that solve fails (here forced: ``tol=1e-30`` cannot be met, so 200 iterations end
+    unconverged at the solution) the error must not call the condition redundant."""
+    pf = np.asarray(jq.from_rotvec(jnp.asarray([1.0, 2.0, 2.0]) / 3), np.float64)
+    model = jq.ControlledModel(
+        _gimballed_payload, 6, extra0=Q0, args=(np.eye(3), np.eye(3)), extra_quaternions=1, extra_final=pf
+    )
+    with pytest.raises(RuntimeError, match="did not converge") as failure:
+        jq.minimum_energy_reorientation(np.eye(3), Q0, Q0, 2.0, intervals=N, torque_bound=10.0, model=model, tol=1e-30)
+    assert "extra_final" not in str(failure.value)
+
+
 @pytest.mark.parametrize(
     "kwargs, match",
     [

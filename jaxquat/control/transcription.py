@@ -566,6 +566,8 @@ def redundant_final(cfg: Config, data: Data, time, u) -> list[int]:
     J = np.asarray(jac_u).reshape(jac_u.shape[0], -1)
     if cfg.min_time:
         J = np.concatenate([J, np.asarray(jac_t).reshape(-1, 1)], axis=1)
+    if not np.all(np.isfinite(J)):  # a diverged iterate: nothing to say
+        return []
     norms = np.linalg.norm(J, axis=1, keepdims=True)
     J = np.where(norms > 0, J / np.where(norms > 0, norms, 1.0), 0.0)
 
