@@ -106,11 +106,12 @@ def tsit5(q0, w0):
     return sol.ys[0, ..., :4]
 
 
-def jaxquat_rkmk4(q0, w0):
+def jaxquat_rkmk4(q0, w0, torque=None, args=None):
     ts = np.asarray([0.0, STEPS * DT], q0.dtype)  # numpy: concrete under jit, so simulate can plan its steps
-    return jq.simulate(
-        q0, w0, jnp.diag(jnp.asarray(MOMENTS, q0.dtype)), ts, solver=jq.RKMK4(), dt0=DT, max_steps=STEPS + 4
-    ).q[..., -1, :]
+    inertia = jnp.diag(jnp.asarray(MOMENTS, q0.dtype))
+    return jq.simulate(q0, w0, inertia, ts, torque=torque, args=args, solver=jq.RKMK4(), dt0=DT, max_steps=STEPS + 4).q[
+        ..., -1, :
+    ]
 
 
 PD_GAINS = (0.5, 0.8)
@@ -125,18 +126,7 @@ def _pd_torque(t, q, w, gains):
 
 def jaxquat_rkmk4_pd(q0, w0):
     """:func:`jaxquat_rkmk4` with :func:`_pd_torque` acting."""
-    ts = np.asarray([0.0, STEPS * DT], q0.dtype)
-    return jq.simulate(
-        q0,
-        w0,
-        jnp.diag(jnp.asarray(MOMENTS, q0.dtype)),
-        ts,
-        torque=_pd_torque,
-        args=jnp.asarray(PD_GAINS, q0.dtype),
-        solver=jq.RKMK4(),
-        dt0=DT,
-        max_steps=STEPS + 4,
-    ).q[..., -1, :]
+    return jaxquat_rkmk4(q0, w0, _pd_torque, jnp.asarray(PD_GAINS, q0.dtype))
 
 
 def mjx_contender():
