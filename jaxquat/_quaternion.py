@@ -10,6 +10,9 @@ components throughout, so XLA fuses a whole expression into one loop over the ba
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from typing import cast
+
 import jax
 import jax.numpy as jnp
 from jax import Array
@@ -86,6 +89,41 @@ def multiply(p: Array, q: Array) -> Array:
 def _multiply_jvp(primals, tangents):
     (p, q), (dp, dq) = primals, tangents
     return multiply(p, q), _weighted_permutations(p, dq, _LEFT_SIGNS) + _weighted_permutations(q, dp, _RIGHT_SIGNS)
+
+
+# The Hamilton product's components: w = p0 q0 - p1 q1 - p2 q2 - p3 q3, etc., as
+# (sign, index in p, index in q) per term.
+_PRODUCT_TERMS = (
+    ((1, 0, 0), (-1, 1, 1), (-1, 2, 2), (-1, 3, 3)),
+    ((1, 0, 1), (1, 1, 0), (1, 2, 3), (-1, 3, 2)),
+    ((1, 0, 2), (-1, 1, 3), (1, 2, 0), (1, 3, 1)),
+    ((1, 0, 3), (1, 1, 2), (-1, 2, 1), (1, 3, 0)),
+)
+
+
+def multiply_components(p: Sequence[Array | None], q: Sequence[Array | None]) -> list[Array | None]:
+    """The Hamilton product ``p q`` on components (lists of four arrays), ``None`` standing
+    for an exact zero: the terms with a zero factor are left out instead of multiplied (XLA
+    cannot drop them, as ``0 * x`` is not 0 for every float), so a product of elementary
+    rotations costs what its written-out formula does. For kernels written on components
+    (:func:`jaxquat._arrays.components`); a component of the result is ``None`` only when
+    every term of it has a zero factor."""
+    out: list[Array | None] = []
+    for terms in _PRODUCT_TERMS:
+        total = None
+        for sign, i, j in terms:
+            a, b = p[i], q[j]
+            if a is None or b is None:
+                continue
+            term = a * b
+            total = (term if sign > 0 else -term) if total is None else (total + term if sign > 0 else total - term)
+        out.append(total)
+    return out
+
+
+def multiply_dense(p: Sequence[Array], q: Sequence[Array]) -> list[Array]:
+    """:func:`multiply_components` of two quaternions given as four component arrays each."""
+    return cast(list[Array], multiply_components(p, q))
 
 
 def conjugate(q: Array) -> Array:

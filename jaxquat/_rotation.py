@@ -32,17 +32,16 @@ def to_matrix(q: Array) -> Array:
     return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
 
 
-def _k_entries(b: Array, shift: float):
+def _k_entries(b: Array | list[Array], shift: float):
     """Entries of Davenport's symmetric 4x4 ``K(B) = [[tr B, z^T], [z, B + B^T - tr(B) I]]`` plus ``shift * I``.
 
     ``z = (B21 - B12, B02 - B20, B10 - B01)``. For every quaternion
     ``q^T K(B) q = sum_ij B_ij R(q)_ij``; for a rotation matrix ``R`` itself,
     ``K(R) + I = 4 q q^T`` (Bar-Itzhack 2000), so every column of it is
-    proportional to ``q``.
+    proportional to ``q``. ``b`` is ``(..., 3, 3)`` or its nine entries row by row.
     """
-    b00, b01, b02 = b[..., 0, 0], b[..., 0, 1], b[..., 0, 2]
-    b10, b11, b12 = b[..., 1, 0], b[..., 1, 1], b[..., 1, 2]
-    b20, b21, b22 = b[..., 2, 0], b[..., 2, 1], b[..., 2, 2]
+    entries = b if isinstance(b, list) else [b[..., i, j] for i in range(3) for j in range(3)]
+    b00, b01, b02, b10, b11, b12, b20, b21, b22 = entries
     diag = (
         shift + b00 + b11 + b22,
         shift + b00 - b11 - b22,
@@ -110,8 +109,11 @@ def top_eigenvector(k: Array) -> Array:
 
 def from_matrix_shepperd(m: Array) -> Array:
     """Shepperd's method: the column of ``K(R) + I = 4 q q^T`` with the largest diagonal entry,
-    normalised, canonical sign."""
-    diag, off = _k_entries(m, 1.0)
+    normalised, canonical sign.
+
+    In components (:func:`_arrays.components` of the nine entries, :func:`_arrays.assemble`);
+    the times against the row form it replaced are in ``docs/benchmarks.md``."""
+    diag, off = _k_entries(_arrays.components(m.reshape(m.shape[:-2] + (9,))), 1.0)
     # Shepperd: use the column of K + I with the largest diagonal entry. That
     # entry is >= 1 for a rotation matrix (the four sum to 4), so the
     # normalisation never divides by a small number and every branch has
@@ -127,75 +129,35 @@ def from_matrix_shepperd(m: Array) -> Array:
     ]
     # Normalise and fix the sign on the components, then stack once: one fused loop.
     scale = _quaternion.canonical_sign(*col) / jnp.sqrt(sum(c * c for c in col))  # (lax.rsqrt is a scalar call on CPU)
-    return jnp.stack([c * scale for c in col], axis=-1)
+    return _arrays.assemble(*(c * scale for c in col))
 
 
-@jax.custom_jvp
-def to_rotvec(q: Array) -> Array:
+def to_rotvec(q: Array, rescale: bool = False) -> Array:
     """The shortest rotation vector ``2 atan2(|v|, |w|) sign(w) v / |v|`` of ``q = (w, v)``
-    (series near the identity).
+    (series near the identity); with ``rescale``, of :func:`_safe.rescaled` ``q`` (any
+    non-zero scale).
 
-    The JVP is written per component (``dn = 2 v . dv``, then ``2 (df v_i + f dv_i)`` with
-    ``f = atan2(|v|, w) / |v|``), so reverse mode transposes element-wise operations: the gradient
-    of the sum at 10^6 (2-core AMD EPYC, minimum of 20, same process) takes 37-45 ms against
-    75 ms (float32) and 66 ms against 120 ms (float64) when the row form's ``canonicalize``,
-    ``norm_sq`` and ``scaled`` were transposed."""
-    q = _quaternion.canonicalize(q)
-    w = q[..., 0]
-    v = q[..., 1:]
-    return _quaternion.scaled(2.0 * _safe.atan2_over_n(_safe.norm_sq(v), w), v)
-
-
-@to_rotvec.defjvp
-def _to_rotvec_jvp(primals, tangents):
-    (q,), (dq,) = primals, tangents
-    sign = _quaternion.canonical_sign(*_quaternion.split(q))
-    w, x, y, z = (sign * c for c in _quaternion.split(q))  # as canonicalize, to the bit
-    # jnp.split, not four slices: reverse mode transposes it into one concatenate instead of
-    # four pads added together (the gradient at 10^6, float32: 37-45 ms against 60 ms).
-    dw, dx, dy, dz = (sign * c[..., 0] for c in jnp.split(dq, 4, axis=-1))
-    nsq = x * x + y * y + z * z  # as norm_sq
-    dnsq = 2.0 * (x * dx + y * dy + z * dz)
-    # f and its two partial derivatives are primal values, stored once (not re-evaluated per
-    # output component); the tangent is then linear in (dnsq, dw) with stored coefficients.
-    # (One reverse pass per element for both partials: two forward passes, one per partial,
-    # took 19 ms against 4.5 ms at 10^6.)
-    partials = jax.value_and_grad(_safe.atan2_over_n, argnums=(0, 1))
-    for _ in range(nsq.ndim):
-        partials = jax.vmap(partials)
-    f, (f_nsq, f_w) = partials(nsq, w)
-    f2, a, b = _arrays.scalars(2.0 * f, 2.0 * f_nsq, 2.0 * f_w)
-    df2 = a * dnsq + b * dw
-    value = jnp.stack([f2 * x, f2 * y, f2 * z], axis=-1)
-    return value, jnp.stack([df2 * x + f2 * dx, df2 * y + f2 * dy, df2 * z + f2 * dz], axis=-1)
+    In components (:func:`_arrays.components`, :func:`_arrays.assemble`), differentiated by
+    JAX through the custom JVP of :func:`_safe.atan2_over_n`. The table in
+    ``docs/benchmarks.md`` has the times against the row form it replaced."""
+    w, x, y, z = _arrays.components(q)
+    if rescale:
+        w, x, y, z = _safe.rescaled_components(w, x, y, z)
+    sign = _quaternion.canonical_sign(w, x, y, z)
+    w, x, y, z = sign * w, sign * x, sign * y, sign * z  # as canonicalize, to the bit
+    f2 = 2.0 * _safe.atan2_over_n(x * x + y * y + z * z, w)
+    return _arrays.assemble(f2 * x, f2 * y, f2 * z)
 
 
-@jax.custom_jvp
 def from_rotvec(r: Array) -> Array:
     """``(cos(|r|/2), sin(|r|/2) r / |r|)`` (series near ``r = 0``).
 
-    The JVP is written per component (``ds = r . dr / 2``, then ``(dcos, dh r_i + h dr_i)`` with
-    ``h = sinc/2``), so reverse mode transposes element-wise operations: the gradient of the sum
-    at 10^6 (float32, 2-core CPU) took 15.6 ms against 35.5 ms when the row form's
-    ``scale[..., None] * r`` and ``norm_sq`` were transposed. The value keeps the row form (the
-    per-component form with a final stack ran 5.1 ms against 2.8 ms forward)."""
-    s = 0.25 * _safe.norm_sq(r)  # (phi/2)^2
-    sinc, w = _safe.sinc_cos_of_sq(s)
-    half_sinc = 0.5 * sinc
-    return _quaternion.scalar_vector(w, r, half_sinc)
-
-
-@from_rotvec.defjvp
-def _from_rotvec_jvp(primals, tangents):
-    (r,), (dr,) = primals, tangents
-    r0, r1, r2 = r[..., 0], r[..., 1], r[..., 2]
-    d0, d1, d2 = dr[..., 0], dr[..., 1], dr[..., 2]
-    s = 0.25 * _safe.norm_sq(r)  # as the value above, to the bit
-    ds = 0.5 * (r0 * d0 + r1 * d1 + r2 * d2)
-    (sinc, cos), (dsinc, dcos) = jax.jvp(_safe.sinc_cos_of_sq, (s,), (ds,))
-    h, dh = 0.5 * sinc, 0.5 * dsinc
-    tangent = jnp.stack([dcos, dh * r0 + h * d0, dh * r1 + h * d1, dh * r2 + h * d2], axis=-1)
-    return _quaternion.scalar_vector(cos, r, h), tangent
+    In components (:func:`_arrays.components`, :func:`_arrays.assemble`), differentiated by
+    JAX with the custom JVP of :func:`_safe.sinc_cos_of_sq`."""
+    r0, r1, r2 = _arrays.components(r)
+    sinc, cos = _safe.sinc_cos_of_sq(0.25 * (r0 * r0 + r1 * r1 + r2 * r2))  # (phi/2)^2
+    h = 0.5 * sinc
+    return _arrays.assemble(cos, h * r0, h * r1, h * r2)
 
 
 def _jacobian(phi: Array, linear: float | Array, quadratic: Array) -> Array:
@@ -220,16 +182,22 @@ def right_jacobian_inverse(phi: Array) -> Array:
 
 
 def slerp(p: Array, q: Array, t: Array) -> Array:
-    """``p (p* q)^t`` along the shorter arc (``q`` flipped when ``p . q < 0``)."""
-    q = jnp.where((_arrays.dot(p, q) < 0)[..., None], -q, q)
-    r = _quaternion.multiply(_quaternion.conjugate(p), q)
-    w, v = r[..., 0], r[..., 1:]
-    nsq = _safe.norm_sq(v)
+    """``p (p* q)^t`` along the shorter arc (``q`` flipped when ``p . q < 0``), as
+    ``p exp(t log(p* q))``.
+
+    In components (:func:`_arrays.components`, :func:`_quaternion.multiply_components`,
+    :func:`_arrays.assemble`), differentiated by JAX with the custom JVPs of
+    :func:`_safe.atan2_over_n` and :func:`_safe.sinc_cos_of_sq`."""
+    pc = _arrays.components(p)
+    qc = _arrays.components(q)
+    flip = jnp.where(pc[0] * qc[0] + pc[1] * qc[1] + pc[2] * qc[2] + pc[3] * qc[3] < 0, -1.0, 1.0).astype(p.dtype)
+    qc = [flip * c for c in qc]
+    w, x, y, z = _quaternion.multiply_dense([pc[0], -pc[1], -pc[2], -pc[3]], qc)
+    nsq = x * x + y * y + z * z
     scale = t * _safe.atan2_over_n(nsq, w)  # t * (half angle) / |v|
-    usq = scale * scale * nsq
-    sinc, cos = _safe.sinc_cos_of_sq(usq)
-    step = _quaternion.scalar_vector(cos, v, scale * sinc)
-    return _quaternion.multiply(p, step)
+    sinc, cos = _safe.sinc_cos_of_sq(scale * scale * nsq)
+    k = scale * sinc
+    return _arrays.assemble(*_quaternion.multiply_dense(pc, [cos, k * x, k * y, k * z]))
 
 
 def align_signs(keys: Array) -> Array:

@@ -80,7 +80,7 @@ def to_rotvec(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3"]:
     At exactly 180 degrees ``phi u`` and ``-phi u`` are the same rotation; the
     sign follows :func:`jaxquat.canonicalize`.
     """
-    return _rotation.to_rotvec(_safe.rescaled(_checks.quat(q)))
+    return _rotation.to_rotvec(_checks.quat(q), rescale=True)
 
 
 def from_rotvec(r: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 4"]:

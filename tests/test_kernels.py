@@ -1,0 +1,179 @@
+"""The component kernels behind the rotation ops (``jaxquat._arrays``, ``_quaternion``, ``_safe``).
+
+``components``/``assemble`` carry custom JVPs chosen for how XLA on CPU compiles their
+transposes, and ``atan2_over_n``/``sinc_cos_of_sq`` carry closed-form derivatives: each must
+still be exactly the split, the stack and the derivatives of the functions they replace,
+checked here against independent references (NumPy's complex-step derivatives, finite
+differences, the Hamilton product in rows).
+"""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from jax.test_util import check_grads
+
+from helpers import DTYPE, NP_DTYPE, seeds
+from jaxquat import _arrays, _quaternion, _safe, _trig
+
+EPS = float(np.finfo(NP_DTYPE).eps)
+
+
+def _roundtrip(x):
+    return _arrays.assemble(*_arrays.components(x))
+
+
+_roundtrip_jit = jax.jit(_roundtrip)
+
+
+@pytest.mark.parametrize("cpu", [True, False], ids=["cpu", "other"])
+@pytest.mark.parametrize("shape", [(4,), (5, 3), (2, 3, 9)])
+def test_components_and_assemble_are_the_split_and_the_stack(cpu, shape, monkeypatch):
+    """Values to the bit (sums of products with 0 and 1 are exact for finite values), and as
+    derivatives the identity in forward and reverse mode, on the CPU path (products, dot
+    tangents) and the other platforms' (a plain stack)."""
+    monkeypatch.setattr(_trig, "_cpu", lambda: cpu)
+    x = jnp.asarray(np.random.default_rng(0).normal(size=shape), DTYPE)
+    f = jax.jit(lambda x: _roundtrip(x))  # a fresh trace per backend setting
+    np.testing.assert_array_equal(f(x), x)
+    parts = _arrays.components(x)
+    assert len(parts) == shape[-1] and all(p.shape == shape[:-1] for p in parts)
+    np.testing.assert_array_equal(jnp.stack(parts, axis=-1), x)
+    w = jnp.asarray(np.random.default_rng(1).normal(size=shape), DTYPE)
+    np.testing.assert_array_equal(jax.grad(lambda x: jnp.sum(f(x) * w))(x), w)
+    np.testing.assert_array_equal(jax.jvp(f, (x,), (w,))[1], w)
+    check_grads(f, (x,), order=2, modes=["fwd", "rev"], eps=1.0)  # linear: differences exact for any step
+
+
+def test_assemble_nan_fills_the_row_on_cpu():
+    """The documented price of the products: a NaN component makes its whole row NaN."""
+    x = jnp.asarray([[1.0, jnp.nan, 2.0], [1.0, 2.0, 3.0]], DTYPE)
+    out = np.asarray(_roundtrip_jit(x))
+    assert np.isnan(out[0]).all() and np.array_equal(out[1], [1.0, 2.0, 3.0])
+
+
+@settings(max_examples=10, deadline=None)
+@given(seeds)
+def test_components_vmap_and_batch(seed):
+    x = jnp.asarray(np.random.default_rng(seed).normal(size=(3, 4, 4)), DTYPE)
+    np.testing.assert_array_equal(jax.vmap(_roundtrip_jit)(x), x)
+
+
+_multiply = jax.jit(_quaternion.multiply)
+
+
+@settings(max_examples=10, deadline=None)
+@given(seeds)
+def test_multiply_components_is_the_hamilton_product(seed):
+    """Against the row form, with full quaternions and with exact zeros left out (``None``)."""
+    rng = np.random.default_rng(seed)
+    p = jnp.asarray(rng.normal(size=(8, 4)), DTYPE)
+    q = jnp.asarray(rng.normal(size=(8, 4)), DTYPE)
+    want = _multiply(p, q)
+    got = jnp.stack(_quaternion.multiply_components(list(p.T), list(q.T)), axis=-1)
+    np.testing.assert_allclose(got, want, rtol=0, atol=8 * EPS * 4)
+    mask_p, mask_q = rng.random(4) < 0.5, rng.random(4) < 0.5
+    sparse = _quaternion.multiply_components(
+        [None if m else c for m, c in zip(mask_p, p.T)], [None if m else c for m, c in zip(mask_q, q.T)]
+    )
+    want = _multiply(p * jnp.asarray(~mask_p, DTYPE)[None, :], q * jnp.asarray(~mask_q, DTYPE)[None, :])
+    for c, (got_c, want_c) in enumerate(zip(sparse, want.T)):
+        if got_c is None:  # every term of this component had a zero factor
+            np.testing.assert_array_equal(want_c, 0.0)
+        else:
+            np.testing.assert_allclose(got_c, want_c, rtol=0, atol=8 * EPS * 4, err_msg=f"component {c}")
+
+
+def _atan_over_n_points():
+    """``(nsq, w)`` across the series switch (``nsq/w^2 = 1e-3``) on both sides, at ``nsq = 0``,
+    ``w`` of both signs and 0, and large ``nsq/w^2``."""
+    rng = np.random.default_rng(3)
+    w = np.concatenate([rng.uniform(0.05, 2.0, 300), rng.uniform(-2.0, -0.05, 100), np.zeros(20)])
+    ratio = np.concatenate([10 ** rng.uniform(-9, 3, 300), 10 ** rng.uniform(-2, 3, 100), 10 ** rng.uniform(-2, 2, 20)])
+    ratio[:20] = 1e-3 * (1 + np.linspace(-1e-3, 1e-3, 20))  # straddling the switch
+    ratio[20:25] = 0.0
+    nsq = ratio * np.where(w == 0, 1.0, w * w)
+    return nsq, w
+
+
+_atan_parts = jax.jit(jax.vmap(jax.value_and_grad(_safe.atan2_over_n, argnums=(0, 1))))
+
+
+def _atan_over_n_dnsq_reference(nsq, w):
+    """``d/dnsq`` of ``atan(n/w)/n`` for ``w > 0``, in float64: below ``nsq/w^2 = 0.1`` its
+    power series (``(1/w^3) sum_k>=1 k (-1)^k x^(k-1) / (2k+1)``, ``x = nsq/w^2``, 40 terms),
+    above it the complex-step derivative (exact to rounding there; at small ``x`` that formula
+    itself cancels, as the direct branch does)."""
+    x = nsq / w**2
+    series = sum(k * (-1.0) ** k * x ** (k - 1) / (2 * k + 1) for k in range(1, 41)) / w**3
+    h = 1e-30
+    n_c = np.sqrt((np.maximum(nsq, 1e-300) + 1j * h).astype(complex))
+    step = np.imag(np.arctan(n_c / w) / n_c) / h
+    return np.where(x < 0.1, series, step)
+
+
+def test_atan2_over_n_derivatives_against_references():
+    """``d/dnsq`` and ``d/dw`` of ``atan2(n, w)/n`` (``n = sqrt(nsq)``) against float64
+    references: the series or complex step for ``w > 0``, central differences for ``w <= 0``,
+    ``-1/(n^2 + w^2)`` for ``d/dw``."""
+    nsq, w = _atan_over_n_points()
+    value, (d_nsq, d_w) = _atan_parts(jnp.asarray(nsq, DTYPE), jnp.asarray(w, DTYPE))
+    value, d_nsq, d_w = (np.asarray(a, np.float64) for a in (value, d_nsq, d_w))
+    pos = w > 0
+    # float32: the direct branch just above the switch loses eps / (nsq / w^2) = 1e3 eps to
+    # cancellation (the docstring's bound); elsewhere a few eps.
+    tol = 1e-12 if DTYPE == jnp.float64 else 2e3 * EPS
+    np.testing.assert_allclose(d_nsq[pos], _atan_over_n_dnsq_reference(nsq[pos], w[pos]), rtol=tol)
+    neg = ~pos & (nsq > 0)
+    step = 1e-6 * nsq[neg]
+    f = lambda s, ww: np.arctan2(np.sqrt(s), ww) / np.sqrt(s)  # noqa: E731
+    fd = (f(nsq[neg] + step, w[neg]) - f(nsq[neg] - step, w[neg])) / (2 * step)
+    np.testing.assert_allclose(d_nsq[neg], fd, rtol=1e-7 if DTYPE == jnp.float64 else 1e3 * EPS)
+    ok = (nsq + w * w) > 0
+    np.testing.assert_allclose(d_w[ok], -1.0 / (nsq[ok] + w[ok] ** 2), rtol=4 * EPS)
+    assert np.all(np.isfinite(value)) and np.all(np.isfinite(d_nsq)) and np.all(np.isfinite(d_w))
+    # at the identity the series: f = 1/w, df/dnsq = -1/(3 w^3), exactly
+    g = jax.grad(_safe.atan2_over_n, argnums=(0, 1))(jnp.asarray(0.0, DTYPE), jnp.asarray(2.0, DTYPE))
+    np.testing.assert_allclose(g, (-1.0 / 24.0, -0.25), rtol=EPS)
+
+
+def test_atan2_over_n_second_derivatives():
+    """The custom JVP's own derivative (JAX's, through the branches) against differences."""
+    nsq = jnp.asarray([1e-6, 0.5, 3.0, 0.2], DTYPE)
+    w = jnp.asarray([0.9, 0.7, -0.4, 1e-1], DTYPE)
+    check_grads(_safe.atan2_over_n, (nsq, w), order=2, modes=["fwd", "rev"], eps=1e-3 if DTYPE == jnp.float32 else 1e-5)
+
+
+_sinc_parts = jax.jit(jax.vmap(lambda s: jax.jvp(_safe.sinc_cos_of_sq, (s,), (jnp.ones_like(s),))))
+
+
+def test_sinc_cos_of_sq_derivatives_against_references():
+    """``d/ds`` of ``sin(x)/x`` and ``cos(x)`` with ``x = sqrt(s)``, across the series switch
+    (``s = 0.02``) and at 0, against float64 references: below ``s = 0.5`` the power series
+    (``sum_k>=1 k (-1)^k s^(k-1) / (2k+1)!`` and ``/ (2k)!``, 30 terms), above it complex-step
+    derivatives."""
+    rng = np.random.default_rng(4)
+    s = np.concatenate([10 ** rng.uniform(-10, 2, 300), 0.02 * (1 + np.linspace(-1e-3, 1e-3, 20)), [0.0]])
+    (sinc, cos), (d_sinc, d_cos) = _sinc_parts(jnp.asarray(s, DTYPE))
+    fact = [float(math.factorial(k)) for k in range(64)]
+    series_sinc = sum(k * (-1.0) ** k * s ** (k - 1) / fact[2 * k + 1] for k in range(1, 31))
+    series_cos = sum(k * (-1.0) ** k * s ** (k - 1) / fact[2 * k] for k in range(1, 31))
+    h = 1e-30
+    x_c = np.sqrt((np.maximum(s, 1e-300) + 1j * h).astype(complex))
+    want_sinc = np.where(s < 0.5, series_sinc, np.imag(np.sin(x_c) / x_c) / h)
+    want_cos = np.where(s < 0.5, series_cos, np.imag(np.cos(x_c)) / h)
+    tol = 1e-12 if DTYPE == jnp.float64 else 200 * EPS  # float32: the direct branch's cancellation, eps / s = 50 eps
+    np.testing.assert_allclose(np.asarray(d_sinc, np.float64), want_sinc, rtol=tol, atol=tol * 1e-2)
+    np.testing.assert_allclose(np.asarray(d_cos, np.float64), want_cos, rtol=tol, atol=tol * 1e-2)
+    np.testing.assert_allclose(np.asarray(d_cos), -0.5 * np.asarray(sinc), rtol=0, atol=0)
+    assert np.all(np.isfinite(np.asarray(cos)))
+    check_grads(
+        lambda s: _safe.sinc_cos_of_sq(s),
+        (jnp.asarray([1e-4, 0.3, 5.0], DTYPE),),
+        order=2,
+        modes=["fwd", "rev"],
+        eps=1e-3 if DTYPE == jnp.float32 else 1e-5,
+    )
