@@ -47,13 +47,18 @@ def components(x: Array) -> list[Array]:
     ``sum(f(x) * W)``, minimum of 7 x 3 interleaved runs, float32 / float64): ``slerp``
     26 / 58 ms against 147 / 186 ms with the split's own transpose, ``from_euler`` 1.1 / 2.7
     against 3.0 / 6.7 ms, ``to_rotvec`` 18 / 33 against 8.6 / 62 ms; every component taken by
-    a product in the value too cost the value (``slerp`` 21 against 6 ms)."""
-    return list(_components(x))
+    a product in the value too cost the value (``slerp`` 21 against 6 ms). Elsewhere (GPU, TPU)
+    a plain split, differentiated by JAX."""
+    return list(_trig.on_cpu(_components, _split, x))
+
+
+def _split(x: Array) -> tuple[Array, ...]:
+    return tuple(c[..., 0] for c in jnp.split(x, x.shape[-1], axis=-1))
 
 
 @jax.custom_jvp
 def _components(x: Array) -> tuple[Array, ...]:
-    return tuple(c[..., 0] for c in jnp.split(x, x.shape[-1], axis=-1))
+    return _split(x)
 
 
 @_components.defjvp
