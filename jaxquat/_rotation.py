@@ -69,10 +69,18 @@ def k_matrix(b: Array, shift: float = 0.0) -> Array:
     return jnp.stack([jnp.stack(c, axis=-1) for c in cols], axis=-2)
 
 
+def _top_column(k: Array, vecs: Array) -> Array:
+    """The last eigenvector, canonical sign; NaN where ``k`` is not finite. LAPACK's ``eigh``
+    returns NaN there, but cuSOLVER's (GPU) returned finite vectors for a NaN input (H100,
+    jax 0.11.2, session 26): a silent wrong answer, so the NaN is made explicit."""
+    finite = jnp.isfinite(k).all(axis=(-2, -1))[..., None]
+    return jnp.where(finite, _quaternion.canonicalize(vecs[..., :, -1]), jnp.nan)
+
+
 @jax.custom_jvp
 def _top_eigenvector_f(k: Array) -> Array:
     _, vecs = jnp.linalg.eigh(k)
-    return _quaternion.canonicalize(vecs[..., :, -1])
+    return _top_column(k, vecs)
 
 
 @_top_eigenvector_f.defjvp
@@ -84,14 +92,14 @@ def _top_eigenvector_jvp(primals, tangents):
     # eigh's own derivative divides by zero.
     (k,), (dk,) = primals, tangents
     lam, vecs = jnp.linalg.eigh(k)
-    v = _quaternion.canonicalize(vecs[..., :, -1])
+    v = _top_column(k, vecs)
     sign = jnp.sum(v * vecs[..., :, -1], axis=-1, keepdims=True)
     others = vecs[..., :, :-1] * sign[..., None]
     gaps = lam[..., -1:] - lam[..., :-1]
     safe_gaps = jnp.where(gaps > 0, gaps, 1.0)
-    coeff = jnp.einsum("...ij,...ik,...k->...j", others, dk, v)
+    coeff = _arrays.einsum("...ij,...ik,...k->...j", others, dk, v)
     coeff = jnp.where(gaps > 0, coeff / safe_gaps, 0.0)
-    return v, jnp.einsum("...ij,...j->...i", others, coeff)
+    return v, _arrays.einsum("...ij,...j->...i", others, coeff)
 
 
 def top_eigenvector(k: Array) -> Array:
@@ -166,7 +174,7 @@ def _jacobian(phi: Array, linear: float | Array, quadratic: Array) -> Array:
     eye = jnp.broadcast_to(jnp.eye(3, dtype=phi.dtype), k.shape)
     lin = jnp.asarray(linear, phi.dtype)
     lin = lin[..., None, None] if lin.ndim else lin
-    return eye + lin * k + quadratic[..., None, None] * (k @ k)
+    return eye + lin * k + quadratic[..., None, None] * _arrays.matmul(k, k)
 
 
 def right_jacobian(phi: Array) -> Array:

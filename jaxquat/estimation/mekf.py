@@ -98,7 +98,8 @@ def _predict(q, bias, p, gyro, dt, gyro_noise, bias_noise):
     top = jnp.concatenate([_rotation.to_matrix(step).T, -dt * _rotation.right_jacobian(phi)], axis=-1)
     bottom = jnp.concatenate([jnp.zeros_like(eye), eye], axis=-1)
     transition = jnp.concatenate([top, bottom], axis=-2)
-    p = symmetric(transition @ p @ transition.T + process_noise(dt, gyro_noise, bias_noise, p.dtype))
+    propagated = _arrays.matmul(_arrays.matmul(transition, p), transition.T)
+    p = symmetric(propagated + process_noise(dt, gyro_noise, bias_noise, p.dtype))
     return q, bias, p
 
 
@@ -119,8 +120,8 @@ def innovate(q, bias, s, cross_t, residual):
     chol = jnp.linalg.cholesky(s)
     solve = functools.partial(jax.scipy.linalg.cho_solve, (chol, True))
     gain = solve(cross_t).T
-    dx = gain @ residual
-    nis = residual @ solve(residual)
+    dx = _arrays.matmul(gain, residual)
+    nis = _arrays.matmul(residual, solve(residual))
     logdet = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
     return gain, _quaternion.multiply(q, _rotation.from_rotvec(dx[:3])), bias + dx[3:], nis, logdet
 
@@ -129,10 +130,12 @@ def _kalman(q, bias, p, h, residual, r_diag):
     """One linear update of the error state with stacked rows ``h`` (k, 6), ``residual`` (k,) and
     diagonal measurement covariance ``r_diag`` (k,). Missing rows: ``h = 0``, ``residual = 0``,
     ``r_diag = 1`` (they then change nothing and add nothing to the statistics)."""
-    s = symmetric(h @ p @ h.T + jnp.diag(r_diag))
-    gain, q, bias, nis, logdet = innovate(q, bias, s, h @ p, residual)  # K = P H^T S^-1 (P symmetric)
-    a = jnp.eye(6, dtype=p.dtype) - gain @ h
-    p = symmetric(a @ p @ a.T + (gain * r_diag[None, :]) @ gain.T)
+    mm = _arrays.matmul
+    hp = mm(h, p)
+    s = symmetric(mm(hp, h.T) + jnp.diag(r_diag))
+    gain, q, bias, nis, logdet = innovate(q, bias, s, hp, residual)  # K = P H^T S^-1 (P symmetric)
+    a = jnp.eye(6, dtype=p.dtype) - mm(gain, h)
+    p = symmetric(mm(mm(a, p), a.T) + mm(gain * r_diag[None, :], gain.T))
     return (q, bias, p), nis, logdet
 
 

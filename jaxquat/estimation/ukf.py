@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
-from .. import _checks, _quaternion, _rotation
+from .. import _arrays, _checks, _quaternion, _rotation
 from .mekf import (
     PREDICT_SIGNATURE,
     QUATERNION_SIGNATURE,
@@ -78,22 +78,24 @@ def _predict(q, bias, p, gyro, dt, gyro_noise, bias_noise, kappa):
         ],
         -1,
     )
-    mean = w @ dev
+    mm = _arrays.matmul
+    mean = mm(w, dev)
     spread = dev - mean[None, :]
-    p = symmetric((spread * w[:, None]).T @ spread + process_noise(dt, gyro_noise, bias_noise, p.dtype))
+    p = symmetric(mm((spread * w[:, None]).T, spread) + process_noise(dt, gyro_noise, bias_noise, p.dtype))
     return _quaternion.multiply(centre, _rotation.from_rotvec(mean[:3])), bias + mean[3:], p
 
 
 def _unscented_update(q, bias, p, offsets, w, z, measured, r_diag):
     """The update from the points' predicted measurements ``z`` (13, k) against ``measured`` (k,):
     ``P_zz`` (plus ``diag(r_diag)``), ``P_xz``, then the MEKF's gain and reset; ``P <- P - K P_zz K^T``."""
-    z_mean = w @ z
+    mm = _arrays.matmul
+    z_mean = mm(w, z)
     dz = z - z_mean[None, :]
-    pzz = symmetric((dz * w[:, None]).T @ dz + jnp.diag(r_diag))
-    pxz = (offsets * w[:, None]).T @ dz
+    pzz = symmetric(mm((dz * w[:, None]).T, dz) + jnp.diag(r_diag))
+    pxz = mm((offsets * w[:, None]).T, dz)
     residual = measured - z_mean
     gain, q, bias, nis, logdet = innovate(q, bias, pzz, pxz.T, residual)
-    return (q, bias, symmetric(p - gain @ pzz @ gain.T)), residual, nis, logdet
+    return (q, bias, symmetric(p - mm(mm(gain, pzz), gain.T))), residual, nis, logdet
 
 
 def _update_vectors(q, bias, p, body, ref, sigma, kappa):

@@ -52,7 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .. import _quaternion, _rates, _rotation, _safe
+from .. import _arrays, _quaternion, _rates, _rotation, _safe
 
 __all__ = [
     "AbstractLeafInterpolation",
@@ -415,7 +415,10 @@ class AbstractRKMK(AbstractLieSolver):
             return [dexpinv(th, gi, order) if f else gi for f, th, gi in zip(flags, theta, g)]
 
         def weigh(weights, ks):
-            return [jnp.tensordot(jnp.asarray(weights, k.dtype), k, axes=1) * h.astype(k.dtype) for k in ks]
+            return [
+                jnp.tensordot(jnp.asarray(weights, k.dtype), k, axes=1, precision=_arrays.FULL) * h.astype(k.dtype)
+                for k in ks
+            ]
 
         h = jnp.asarray(h)
         if tab.fsal and solver_state is not None:

@@ -180,7 +180,7 @@ def _columns_by_products(x: Array) -> Comps:
     under XLA's defaults."""
     x = _gather_by_product(x)
     eye = jnp.eye(x.shape[-1], dtype=x.dtype)
-    return tuple(x @ eye[:, i] for i in range(x.shape[-1]))
+    return tuple(_arrays.matmul(x, eye[:, i]) for i in range(x.shape[-1]))
 
 
 @jax.custom_jvp
@@ -201,7 +201,7 @@ def _gather_by_product(x: Array) -> Array:
 @_gather_by_product.defjvp
 def _gather_jvp(primals: tuple[Array], tangents: tuple[Array]) -> tuple[Array, Array]:
     (x,), (dx,) = primals, tangents
-    return x, dx @ jnp.eye(dx.shape[-1], dtype=dx.dtype)
+    return x, _arrays.matmul(dx, jnp.eye(dx.shape[-1], dtype=dx.dtype))
 
 
 class Tableau:

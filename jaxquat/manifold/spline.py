@@ -45,8 +45,8 @@ def _thomas_factor(lower: Array, diag: Array, upper: Array):
 
     def step(c_prev, blocks):
         lo, d, up = blocks
-        inv = jnp.linalg.inv(d - lo @ c_prev)
-        c = inv @ up
+        inv = jnp.linalg.inv(d - _arrays.matmul(lo, c_prev))
+        c = _arrays.matmul(inv, up)
         return c, (c, inv)
 
     zero = jnp.zeros_like(diag[0])

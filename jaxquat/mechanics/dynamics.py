@@ -199,7 +199,7 @@ def _quat_inertia_product(q: Array, inertia: Array) -> Array:
     w, v = q[..., 0], q[..., 1:]
     x, y, z = v[..., 0], v[..., 1], v[..., 2]
     e = jnp.stack([jnp.stack([-x, w, z, -y], -1), jnp.stack([-y, -z, w, x], -1), jnp.stack([-z, y, -x, w], -1)], -2)
-    return jnp.swapaxes(e, -1, -2) @ inertia @ e
+    return _arrays.matmul(_arrays.matmul(jnp.swapaxes(e, -1, -2), inertia), e)
 
 
 def euler_parameter_mass_matrix(
@@ -275,7 +275,7 @@ def euler_parameter_augmented_system(
         inertia=(validated(inertia), "inertia"),
     )
     mass = 4.0 * _quat_inertia_product(q, inertia)
-    gyro = 8.0 * _quat_inertia_product(qdot, inertia) @ q[..., None]
+    gyro = 8.0 * _arrays.matmul(_quat_inertia_product(qdot, inertia), q[..., None])
     m = _quaternion.pure(_rates.to_body(q, torque, frame))
     top_rhs = 2.0 * _quaternion.multiply(q, m) + gyro[..., 0]
     rhs = jnp.concatenate([top_rhs, -2.0 * jnp.sum(qdot * qdot, -1, keepdims=True)], axis=-1)

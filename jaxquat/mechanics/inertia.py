@@ -66,7 +66,7 @@ def rotate_inertia(
     """
     q, inertia = _checks.arguments(q=(q, "quaternion"), inertia=(inertia, "inertia"))
     a = _rotation.to_matrix(q)
-    return a @ inertia @ jnp.swapaxes(a, -1, -2)
+    return _arrays.matmul(_arrays.matmul(a, inertia), jnp.swapaxes(a, -1, -2))
 
 
 def inertia_rate(
@@ -75,7 +75,7 @@ def inertia_rate(
     """Time derivative of the space-frame inertia of a rigid body: ``dI0/dt = hat(w) I0 - I0 hat(w)``, [C] eq. (C4)."""
     i0, w = _checks.arguments(inertia_space=(inertia_space, "inertia"), omega_space=(omega_space, "vector"))
     wh = _arrays.hat(w)
-    return wh @ i0 - i0 @ wh
+    return _arrays.matmul(wh, i0) - _arrays.matmul(i0, wh)
 
 
 def quaternion_inertia(inertia: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 4 4"]:

@@ -161,7 +161,7 @@ def matrix_rate(
     frame = _checks.frame(frame)
     q, omega = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"))
     a = _rotation.to_matrix(q)
-    return a @ _arrays.hat(omega) if frame == "body" else _arrays.hat(omega) @ a
+    return _arrays.matmul(a, _arrays.hat(omega)) if frame == "body" else _arrays.matmul(_arrays.hat(omega), a)
 
 
 def matrix_acceleration(
@@ -180,8 +180,8 @@ def matrix_acceleration(
     q, omega, alpha = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"), alpha=(alpha, "vector"))
     a = _rotation.to_matrix(q)
     w = _arrays.hat(omega)
-    k = w @ w + _arrays.hat(alpha)
-    return a @ k if frame == "body" else k @ a
+    k = _arrays.matmul(w, w) + _arrays.hat(alpha)
+    return _arrays.matmul(a, k) if frame == "body" else _arrays.matmul(k, a)
 
 
 def point_velocity(

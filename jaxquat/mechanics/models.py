@@ -160,14 +160,14 @@ class ReactionWheelSpacecraft(eqx.Module):
 
     def momentum(self, y: dict[str, Array]) -> Array:
         """The total angular momentum in the inertial frame, ``R(q) (J w + A h)``."""
-        return _quaternion.rotate(y["q"], _arrays.matvec(self.inertia, y["w"]) + y["h"] @ self.axes)
+        return _quaternion.rotate(y["q"], _arrays.matvec(self.inertia, y["w"]) + _arrays.matmul(y["h"], self.axes))
 
     def __call__(self, t, y: dict[str, Array], args) -> dict[str, Array]:
         q, w, h = y["q"], y["w"], y["h"]
         u, external = self.control(t, y, args)
         u = self.wheel_torque(jnp.asarray(u, h.dtype), h)
-        total = _arrays.matvec(self.inertia, w) + h @ self.axes
-        wdot = _arrays.symmetric_solve(self.inertia, external - u @ self.axes - jnp.cross(w, total))
+        total = _arrays.matvec(self.inertia, w) + _arrays.matmul(h, self.axes)
+        wdot = _arrays.symmetric_solve(self.inertia, external - _arrays.matmul(u, self.axes) - jnp.cross(w, total))
         return {"q": _rates.qdot_from_omega(q, w, "body"), "w": wdot, "h": u}
 
 

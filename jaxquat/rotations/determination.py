@@ -56,7 +56,7 @@ def triad(
     names = ["b1", "b2", "r1", "r2"]
     vs = [_checks.vec3(v, n) for v, n in zip((b1, b2, r1, r2), names)]
     b1, b2, r1, r2 = _checks.broadcast_batch(vs, names, [1, 1, 1, 1])
-    m = jnp.einsum("...ik,...jk->...ij", _frame(r1, r2), _frame(b1, b2))
+    m = _arrays.einsum("...ik,...jk->...ij", _frame(r1, r2), _frame(b1, b2))
     return _rotation.from_matrix_shepperd(m)
 
 
@@ -95,9 +95,9 @@ def _quest_newton(k: Array, lam0: Array) -> Array:
     """The largest root of ``det(K - lambda I) = lambda^4 - (tr K^2 / 2) lambda^2 - (tr K^3 / 3) lambda
     + det K`` (``K`` is traceless) by Newton's method from ``lam0 >= lambda_max``, where the quartic
     is increasing and convex, so the iterates decrease monotonically to the root."""
-    k2 = jnp.einsum("...ij,...jk->...ik", k, k)
+    k2 = _arrays.einsum("...ij,...jk->...ik", k, k)
     a = 0.5 * jnp.trace(k2, axis1=-2, axis2=-1)
-    b = jnp.einsum("...ij,...ji->...", k2, k) / 3.0
+    b = _arrays.einsum("...ij,...ji->...", k2, k) / 3.0
     c = jnp.linalg.det(k)
 
     def step(_, lam):
@@ -135,7 +135,7 @@ def _quest_eigenpair(k: Array, lam0: Array) -> tuple[Array, Array]:
     lam = _quest_newton(k, lam0) if float64 else lam0
     for _ in range(1 if float64 else 3):
         v = _best_column(_adjugate(_shifted(k, lam)))
-        lam = jnp.einsum("...i,...ij,...j->...", v, k, v)
+        lam = _arrays.einsum("...i,...ij,...j->...", v, k, v)
     return lam, _best_column(_adjugate(_shifted(k, lam)))
 
 
@@ -151,7 +151,7 @@ def _quest_kernel_jvp(primals, tangents):
     # lam is simple: it has eigenvalue 1 on v and the gaps lam_j - lam elsewhere).
     (k, lam0), (dk, _) = primals, tangents
     lam, v = _quest_eigenpair(k, lam0)
-    dkv = jnp.einsum("...ij,...j->...i", dk, v)
+    dkv = _arrays.einsum("...ij,...j->...i", dk, v)
     rhs = -(dkv - v * jnp.sum(v * dkv, axis=-1, keepdims=True))
     n = _shifted(k, lam) + v[..., :, None] * v[..., None, :]
     return v, jnp.linalg.solve(n, rhs[..., None])[..., 0]
@@ -204,7 +204,7 @@ def _quest(b: Array, r: Array, w: Array) -> Array:
     dtype = b.dtype
     work = _checks.working_dtype(dtype)
     b, r, w = b.astype(work), r.astype(work), w.astype(work)
-    bmat = jnp.einsum("...n,...ni,...nj->...ij", w, r, b)
+    bmat = _arrays.einsum("...n,...ni,...nj->...ij", w, r, b)
     lam0 = jnp.sum(w * jnp.sqrt(_safe.norm_sq(r) * _safe.norm_sq(b)), axis=-1)
     return _quest_kernel(_rotation.k_matrix(bmat), lam0).astype(dtype)
 
@@ -233,7 +233,7 @@ def attitude_covariance(
     work = _checks.working_dtype(b.dtype)
     u, s = u.astype(work), s.astype(work)
     outer = u[..., :, None] * u[..., None, :]
-    info = jnp.einsum(
+    info = _arrays.einsum(
         "...n,...nij->...ij", 1.0 / (s * s), jnp.broadcast_to(jnp.eye(3, dtype=work), outer.shape) - outer
     )
     return jnp.linalg.inv(info).astype(b.dtype)
@@ -288,7 +288,7 @@ def align_vectors(
     if a.shape[-2] == 1:
         degenerate = (_safe.norm_sq(a[..., 0, :]) == 0) | (_safe.norm_sq(b[..., 0, :]) == 0)
         return _arrays.nan_where(bad | degenerate, _rotation.minimal_rotation(a[..., 0, :], b[..., 0, :]))
-    bmat = jnp.einsum("...n,...ni,...nj->...ij", weights, a, b)
+    bmat = _arrays.einsum("...n,...ni,...nj->...ij", weights, a, b)
     k = _rotation.k_matrix(bmat)
     q = _arrays.nan_where(bad | jnp.all(bmat == 0, axis=(-2, -1)), _rotation.top_eigenvector(k))
     if not return_sensitivity:
@@ -300,8 +300,8 @@ def _sensitivity(k: Array, q: Array, bmat: Array, weights: Array) -> Array:
     """scipy's ``align_vectors`` sensitivity from Davenport's eigenpair, without an SVD: with ``s_i``
     the proper singular values of ``B``, ``lambda = s_1 + s_2 + s_3``, ``kappa = sum_{i<j} s_i s_j``
     and ``zeta = prod_{i<j} (s_i + s_j)``, written through ``tr(B B^T)`` and ``det B``."""
-    lam = jnp.einsum("...i,...ij,...j->...", q, k, q)
-    bbt = jnp.einsum("...ik,...jk->...ij", bmat, bmat)
+    lam = _arrays.einsum("...i,...ij,...j->...", q, k, q)
+    bbt = _arrays.einsum("...ik,...jk->...ij", bmat, bmat)
     kappa = 0.5 * (lam * lam - jnp.trace(bbt, axis1=-2, axis2=-1))
     zeta = lam * kappa - jnp.linalg.det(bmat)
     eye = jnp.broadcast_to(jnp.eye(3, dtype=bmat.dtype), bbt.shape)

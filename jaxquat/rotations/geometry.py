@@ -8,7 +8,6 @@ Wahba's problem (``align_vectors``) lives with the other attitude-determination 
 from __future__ import annotations
 
 
-import jax.numpy as jnp
 from jax import Array
 from jaxtyping import ArrayLike, Float
 
@@ -65,8 +64,8 @@ def mean(
         )
     _checks.nonempty(q, "q", -2, "rotation to average (n >= 1 in (..., n, 4))")
     if weights is None:
-        return _rotation.top_eigenvector(jnp.einsum("...ni,...nj->...ij", q, q))
+        return _rotation.top_eigenvector(_arrays.einsum("...ni,...nj->...ij", q, q))
     weights = _checks.weights(_checks.per_item(weights, "weights", q, "q"))
     q, weights = _checks.arguments(q=(q, "quaternions"), weights=(weights, "scalars"))
-    m = jnp.einsum("...n,...ni,...nj->...ij", weights, q, q)
+    m = _arrays.einsum("...n,...ni,...nj->...ij", weights, q, q)
     return _arrays.nan_where(~_arrays.valid_weights(weights), _rotation.top_eigenvector(m))
