@@ -39,7 +39,14 @@ _COS = (1.0, -1.0 / 2.0, 1.0 / 24.0, -1.0 / 720.0, 1.0 / 40320.0)
 # The derivatives' series take one term more than the values', to keep the same accuracy.
 _SINC_DERIVATIVE = tuple(k * c for k, c in enumerate(_SINC + (-1.0 / 39916800.0,)))[1:]  # d/ds
 _ATAN = (1.0, -1.0 / 3.0, 1.0 / 5.0, -1.0 / 7.0, 1.0 / 9.0, -1.0 / 11.0)
-_ATAN_DERIVATIVE = tuple(k * c for k, c in enumerate(_ATAN + (1.0 / 13.0,)))[1:]  # d/d(x^2)
+# d/d(x^2) of atan(x)/x = sum_k (-1)^k x^2k / (2k+1): sum_k>=1 k (-1)^k x^2(k-1) / (2k+1), taken up
+# to x^2 = 0.1, where the direct formula's cancellation costs 1.5 / x^2 = 15 eps (at the value's
+# switch, 1e-3, it cost 1500 eps: in float32 on an H100, whose atan2 differs from this CPU's,
+# 1.5x the test's bound of 2000 eps, session 26). Terms to 0.1^K below the dtype's eps.
+_ATAN_DERIVATIVE_SWITCH = 0.1
+_ATAN_DERIVATIVE = {
+    bits: tuple(k * (-1.0) ** k / (2 * k + 1) for k in range(1, terms + 1)) for bits, terms in ((32, 9), (64, 17))
+}
 
 
 def _horner(s: Array, coeffs: tuple[float, ...]) -> Array:
@@ -104,10 +111,9 @@ def atan2_over_n(nsq: Array, w: Array) -> Array:
     selects left XLA on CPU more separate passes over the batch: measured at 10^6 (this 2-core
     CPU, the gradient of ``sum(f(x) * W)``, minimum of 7 x 3 interleaved runs, float32 /
     float64), ``to_rotvec`` 16 / 33 against 37 / 71 ms, ``slerp`` 29 / 56 against 45 / 95 ms.
-    The direct branch of ``df/dnsq`` loses about ``eps / x^2`` relative accuracy to
-    cancellation just above the switch (``x^2 = nsq / w^2 = 1e-3``), as JAX's derivative of
-    the direct formula does; its term is ``x^2`` times smaller than the rest of a rotation
-    vector's Jacobian.
+    ``df/dnsq`` takes its series up to ``x^2 = nsq / w^2 = 0.1`` (the value up to ``1e-3``):
+    the direct branch loses about ``1.5 eps / x^2`` relative accuracy to cancellation, 15 eps
+    there. Its term is ``x^2`` times smaller than the rest of a rotation vector's Jacobian.
     """
     return _atan2_over_n_parts(nsq, w)[0]
 
@@ -118,16 +124,20 @@ def _atan2_over_n_parts(nsq: Array, w: Array) -> tuple[Array, Array, Array]:
     w_safe = jnp.where(small, w, 1.0)
     x2 = jnp.where(small, nsq / (w_safe * w_safe), 0.0)
     taylor = _horner(x2, _ATAN) / w_safe
-    inv = 1.0 / w_safe
-    # d/dnsq of (1/w) sum_k a_k (nsq/w^2)^k
-    taylor_n = _horner(x2, _ATAN_DERIVATIVE) * (inv * inv * inv)
+    # d/dnsq of (1/w) sum_k a_k (nsq/w^2)^k, on its own, wider interval
+    small_n = (w > 0) & (nsq < _ATAN_DERIVATIVE_SWITCH * w * w)
+    w_n = jnp.where(small_n, w, 1.0)
+    inv = 1.0 / w_n
+    x2_n = jnp.where(small_n, nsq * (inv * inv), 0.0)
+    taylor_n = _horner(x2_n, _ATAN_DERIVATIVE[64 if nsq.dtype == jnp.float64 else 32]) * (inv * inv * inv)
     degenerate = small | (nsq <= 0)
     nsq_safe = jnp.where(degenerate, 1.0, nsq)
     n_safe = jnp.sqrt(nsq_safe)
     f = jnp.where(small, taylor, _trig.atan2(n_safe, w) / n_safe)
     rsq = nsq + w * w
     r = 1.0 / jnp.where(rsq > 0, rsq, 1.0)
-    f_n = jnp.where(small, taylor_n, (w * r - f) / (2.0 * nsq_safe))
+    nsq_n = jnp.where(small_n | (nsq <= 0), 1.0, nsq)
+    f_n = jnp.where(small_n, taylor_n, (w * r - f) / (2.0 * nsq_n))
     f, f_n, f_w = _arrays.scalars(f, f_n, -r)
     return f, f_n, f_w
 

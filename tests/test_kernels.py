@@ -49,10 +49,13 @@ def test_components_and_assemble_are_the_split_and_the_stack(cpu, shape, monkeyp
 
 
 def test_assemble_nan_fills_the_row_on_cpu():
-    """The documented price of the products: a NaN component makes its whole row NaN."""
+    """The documented price of the products on CPU: a NaN component makes its whole row NaN.
+    Elsewhere (a plain stack) the NaN stays where it was."""
     x = jnp.asarray([[1.0, jnp.nan, 2.0], [1.0, 2.0, 3.0]], DTYPE)
     out = np.asarray(_roundtrip_jit(x))
-    assert np.isnan(out[0]).all() and np.array_equal(out[1], [1.0, 2.0, 3.0])
+    row = [True, True, True] if jax.default_backend() == "cpu" else [False, True, False]
+    np.testing.assert_array_equal(np.isnan(out[0]), row)
+    np.testing.assert_array_equal(out[1], [1.0, 2.0, 3.0])
 
 
 @settings(max_examples=10, deadline=None)
@@ -93,8 +96,9 @@ def _atan_over_n_points():
     rng = np.random.default_rng(3)
     w = np.concatenate([rng.uniform(0.05, 2.0, 300), rng.uniform(-2.0, -0.05, 100), np.zeros(20)])
     ratio = np.concatenate([10 ** rng.uniform(-9, 3, 300), 10 ** rng.uniform(-2, 3, 100), 10 ** rng.uniform(-2, 2, 20)])
-    ratio[:20] = 1e-3 * (1 + np.linspace(-1e-3, 1e-3, 20))  # straddling the switch
+    ratio[:20] = 1e-3 * (1 + np.linspace(-1e-3, 1e-3, 20))  # straddling the value's switch
     ratio[20:25] = 0.0
+    ratio[25:45] = 0.1 * (1 + np.linspace(-1e-3, 1e-3, 20))  # straddling the derivative's
     nsq = ratio * np.where(w == 0, 1.0, w * w)
     return nsq, w
 
@@ -123,9 +127,10 @@ def test_atan2_over_n_derivatives_against_references():
     value, (d_nsq, d_w) = _atan_parts(jnp.asarray(nsq, DTYPE), jnp.asarray(w, DTYPE))
     value, d_nsq, d_w = (np.asarray(a, np.float64) for a in (value, d_nsq, d_w))
     pos = w > 0
-    # float32: the direct branch just above the switch loses eps / (nsq / w^2) = 1e3 eps to
-    # cancellation (the docstring's bound); elsewhere a few eps.
-    tol = 1e-12 if DTYPE == jnp.float64 else 2e3 * EPS
+    # The direct branch just above the derivative's switch (nsq / w^2 = 0.1) loses 1.5 eps / 0.1
+    # to cancellation (the docstring's bound): largest errors 16 eps (float32) and 30 eps
+    # (float64, against a reference good to a few eps) on this 2-core EPYC.
+    tol = 100 * EPS
     np.testing.assert_allclose(d_nsq[pos], _atan_over_n_dnsq_reference(nsq[pos], w[pos]), rtol=tol)
     neg = ~pos & (nsq > 0)
     step = 1e-6 * nsq[neg]
