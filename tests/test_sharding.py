@@ -17,6 +17,7 @@ ROOT = pathlib.Path(__file__).parent.parent
 SCRIPT = r"""
 import os
 os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=4"
+os.environ["JAX_PLATFORMS"] = "cpu"  # host devices, also on a machine with a GPU
 import jax, jax.numpy as jnp, numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 import jaxquat as jq
