@@ -218,6 +218,8 @@ def _options(tol, max_iter, throw, starts, seed, init) -> tuple:
         h = getattr(init, "extra", None) if h is None else h
         init = Warm(*(jnp.asarray(a) for a in (init.time, init.ts, init.q, init.omega, init.torque)))
         init = init._replace(h=None if h is None else jnp.asarray(h))
+    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 0:
+        raise ValueError(f"argument 'max_iter' must be an int >= 0, got {max_iter!r}")
     return tol, max_iter, throw, starts, int(seed), init
 
 
@@ -380,7 +382,7 @@ def _run(
     # suite's 10-interval problem, whose bound came once as an array and once as a list).
     data = jax.tree.map(lambda a: jnp.asarray(a, a.dtype), jax.vmap(data_of)(*flat))
     keys = jax.vmap(lambda k: jax.random.fold_in(jax.random.PRNGKey(seed), k))(jnp.arange(starts))
-    out = solve(data, cfg, tol, max_iter, keys, init)
+    out = solve(data, cfg, tol, jnp.asarray(max_iter, jnp.int32), keys, init)
     out = jax.tree.map(lambda a: jnp.reshape(a, batch + a.shape[1:]), out)
     if throw and not _checks.is_traced(out.violation):
         bad = ~np.asarray(out.converged)
