@@ -683,3 +683,28 @@ def test_progress_without_tqdm_names_the_optional_dependency(monkeypatch):
             progress=True,
             method="single_shooting",
         )
+
+
+def _concatenated_operands(n_times: int) -> int:
+    """Operands of every concatenation in the lowered program of an adaptive ``simulate`` with
+    ``n_times`` saved times (traced), summed."""
+    ts = jnp.linspace(0.0, 1.0, n_times, dtype=DTYPE)
+    fn = jax.jit(lambda w, ts: jq.simulate(jq.identity((), DTYPE), w, jnp.eye(3, dtype=DTYPE), ts, solver=jq.RKMK45()))
+    text = fn.lower(jnp.ones(3, DTYPE), ts).as_text()
+    return sum(line.split("dim =")[0].count("%") - 1 for line in text.splitlines() if "stablehlo.concatenate" in line)
+
+
+def test_adaptive_simulate_compiles_no_concatenation_of_every_saved_time():
+    """Diffrax 0.7.0 fills ``SaveAt(ts=...)`` on its ``t0 == t1`` branch by stacking ``len(ts)``
+    copies of the state, which XLA on CPU compiled into kernels of megabytes (6001 saved times:
+    21 s of the first call's 22 s). ``simulate`` traces it as a broadcast: the program's
+    concatenations do not grow with the number of saved times (with the stack: 4320 operands at
+    2001 times, 50 without). The broadcast's values are the stack's."""
+    assert _concatenated_operands(2001) == _concatenated_operands(101)
+    from jaxquat.integration.simulation import _StackOfCopiesAsBroadcast
+
+    shim = _StackOfCopiesAsBroadcast(jnp)
+    x = jnp.arange(6.0, dtype=DTYPE).reshape(2, 3)
+    np.testing.assert_array_equal(shim.stack([x] * 5), jnp.stack([x] * 5))
+    np.testing.assert_array_equal(shim.stack([x, x + 1]), jnp.stack([x, x + 1]))
+    assert shim.pi == jnp.pi
