@@ -314,14 +314,14 @@ def _saves_by_broadcast():
     import diffrax._integrate as integrate  # private: where the saving code lives (0.6-0.7)
 
     original = getattr(integrate, "jnp", None)
-    if original is None:  # another layout (a later diffrax): nothing to do
-        yield
+    if original is None or isinstance(original, _StackOfCopiesAsBroadcast):
+        yield  # another layout (a later diffrax), or already in place (a trace in another thread)
         return
-    integrate.jnp = _StackOfCopiesAsBroadcast(original)
+    setattr(integrate, "jnp", _StackOfCopiesAsBroadcast(original))  # noqa: B010 (a private name: no typed attribute)
     try:
         yield
     finally:
-        integrate.jnp = original
+        setattr(integrate, "jnp", original)  # noqa: B010
 
 
 class _Field(eqx.Module):
