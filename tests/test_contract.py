@@ -765,17 +765,19 @@ def test_every_matrix_product_asks_for_full_precision():
     float32. Every ``dot_general`` that the registry's functions and their gradients trace (and
     the filters' steps) must ask for ``HIGHEST``; at the commit before the fix, 26 of the 80
     registry functions had products at the default."""
-    highest = jax.lax.Precision.HIGHEST
-    default = {}
+    traced = {}
     for name in NAMES:
         fn, args, diff = _make(name, SMOOTH_Q)
         args = [jnp.asarray(a, DTYPE) for a in args]
         weights = [jnp.ones(o.shape, o.dtype) for o in _leaves(jax.eval_shape(fn, *args))]
-        found = _dot_precisions(jax.make_jaxpr(jax.grad(_loss(fn, args, diff, weights)))(args[diff]).jaxpr, [])
-        default[name] = sum(p is None or any(x != highest for x in p) for p in found)
+        traced[name] = jax.make_jaxpr(jax.grad(_loss(fn, args, diff, weights)))(args[diff])
     inputs = _inputs()
     for name, call in MORE_CALLS.items():
-        found = _dot_precisions(jax.make_jaxpr(functools.partial(call, inputs))().jaxpr, [])
-        default[name] = sum(p is None or any(x != highest for x in p) for p in found)
+        traced[name] = jax.make_jaxpr(functools.partial(call, inputs))()
+    highest = jax.lax.Precision.HIGHEST
+    default = {
+        name: sum(p is None or any(x != highest for x in p) for p in _dot_precisions(closed.jaxpr, []))
+        for name, closed in traced.items()
+    }
     bad = {k: v for k, v in default.items() if v}
     assert not bad, f"products at the default precision (name: count): {bad}"
