@@ -119,5 +119,14 @@ def scan_steps(
             carry, _ = jax.lax.scan(inner, carry, jnp.arange(substeps, dtype=ts.dtype))
         return carry, saved(carry)
 
-    _, ys = jax.lax.scan(interval, y0, (ts[:-1], ts[1:], interval_args))
+    # One interval (``ts`` of two times, as in a simulation saved only at its end): no scan of
+    # length 1 around the steps' scan. Each transform of a scan traces its body again, so the
+    # extra level cost reverse mode its tracing: the first optax Adam step through ``simulate``
+    # (batch 1000, 1000 RKMK4 steps, float32, this 2-core CPU) 1.84-1.97 s before, 1.55-1.60 s
+    # after (tracing 0.51 -> 0.35 s, XLA 1.50 -> 1.07 s); values and gradients bit-identical.
+    if ts.shape[0] == 2:
+        _, y1 = interval(y0, jax.tree.map(lambda x: x[0], (ts[:-1], ts[1:], interval_args)))
+        ys = jax.tree.map(lambda a: jnp.asarray(a)[None], y1)
+    else:
+        _, ys = jax.lax.scan(interval, y0, (ts[:-1], ts[1:], interval_args))
     return jax.tree.map(lambda a, b: jnp.concatenate([jnp.asarray(a)[None], b]), saved(y0), ys)
