@@ -1,5 +1,5 @@
 """Suite-wide settings: dtype from JAX_ENABLE_X64, strict rank promotion, hypothesis profile,
-and XLA's cheaper CPU compilation.
+XLA's cheaper CPU compilation, and one OpenBLAS thread for LAPACK (below, at its line).
 
 XLA compilation is most of the suite's time (52 % of the float64 pass, and 16 % more tracing).
 ``--xla_cpu_use_fusion_emitters=false`` (XLA's older elemental CPU emitters instead of its MLIR
@@ -43,6 +43,16 @@ if not os.environ.get("JAXQUAT_TEST_XLA_DEFAULTS") and _before("jaxlib", 0, 11):
             "--xla_cpu_use_fusion_emitters=false",
         ]
     ).strip()
+
+# LAPACK on a CPU (``eigh``, QR and the triangular solves of the interior point's Newton step) is
+# scipy's OpenBLAS, loaded by jax, whose threaded routines round differently with the number of
+# threads it starts (one per core it may run on): the one-start wheel slew of
+# ``benchmarks/optimal_control.py`` took 169 interior-point iterations with two threads and 177
+# with one (the same optimum to 8e-12), while XLA's own thread count
+# (``--xla_cpu_multi_thread_eigen=false``) changed nothing. One thread, so that no verdict depends
+# on the cores of the machine; set before jax loads scipy's copy (pytest's plugins load only
+# NumPy's own), and inherited by the example and notebook subprocesses.
+os.environ["OPENBLAS_NUM_THREADS"] = "1"
 
 import jax  # noqa: E402
 

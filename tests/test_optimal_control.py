@@ -847,3 +847,23 @@ def test_bad_duration_method_and_shapes_raise():
         jq.minimum_time_reorientation(np.eye(3), np.ones(3), Q0, QF, method="ipopt")
     with pytest.raises(ValueError, match="single_shooting"):
         jq.minimum_time_reorientation(np.eye(3), np.ones(3), Q0, QF, rate_bound=1.0, method="single_shooting")
+
+
+def test_the_suite_runs_lapack_on_one_openblas_thread():
+    """``conftest.py`` asks scipy's OpenBLAS, the LAPACK that jax calls on a CPU (``eigh`` and QR
+    in the interior point's Newton step), for one thread: with two the one-start wheel slew took
+    169 iterations, with one 177, so an iteration count or a marginal convergence would otherwise
+    depend on the cores of the machine. This checks that the request reached the library jax
+    loaded (it would not if something loaded scipy's OpenBLAS before the conftest ran)."""
+    import ctypes
+
+    jax.block_until_ready(jnp.linalg.eigh(jnp.eye(3)))  # jax's LAPACK is loaded
+    try:
+        with open("/proc/self/maps") as maps:
+            paths = {line.split()[-1] for line in maps if "scipy.libs" in line and "libscipy_openblas" in line}
+    except OSError:
+        pytest.skip("no /proc/self/maps on this system")
+    if not paths:
+        pytest.skip("this scipy does not bundle OpenBLAS")
+    for path in paths:
+        assert ctypes.CDLL(path).scipy_openblas_get_num_threads() == 1, path
