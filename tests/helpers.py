@@ -7,6 +7,7 @@ jitted function compiles once per dtype and is reused across examples.
 from __future__ import annotations
 
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 from hypothesis import strategies as st
@@ -244,3 +245,16 @@ def run_notebook_in_process(path) -> str:
         os.chdir(cwd)
         sys.path[:] = search  # a notebook may add its folder's parent
     return buffer.getvalue()
+
+
+def jaxpr_equations(jaxpr):
+    """Every equation of ``jaxpr`` (a ``jax.extend.core.Jaxpr``) and of the jaxprs inside it
+    (scan and while bodies, ``jit`` calls, custom rules), depth first."""
+    for eqn in jaxpr.eqns:
+        yield eqn
+        for param in eqn.params.values():
+            for sub in param if isinstance(param, (list, tuple)) else [param]:
+                if isinstance(sub, jax.extend.core.ClosedJaxpr):
+                    yield from jaxpr_equations(sub.jaxpr)
+                elif isinstance(sub, jax.extend.core.Jaxpr):
+                    yield from jaxpr_equations(sub)

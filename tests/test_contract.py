@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import jaxquat as jq
-from helpers import DTYPE, X64, assert_close, central_difference_jacobian, random_inertias
+from helpers import DTYPE, X64, assert_close, central_difference_jacobian, jaxpr_equations, random_inertias
 
 B = 12
 RNG = np.random.default_rng(1234)
@@ -746,15 +746,7 @@ def test_annotations_hold_beyond_the_registry(name, typechecked):
 
 def _dot_precisions(jaxpr, found):
     """The ``precision`` of every ``dot_general`` in ``jaxpr`` and the jaxprs inside it."""
-    for eqn in jaxpr.eqns:
-        if eqn.primitive.name == "dot_general":
-            found.append(eqn.params["precision"])
-        for param in eqn.params.values():
-            for sub in param if isinstance(param, (list, tuple)) else [param]:
-                if isinstance(sub, jax.extend.core.ClosedJaxpr):
-                    _dot_precisions(sub.jaxpr, found)
-                elif isinstance(sub, jax.extend.core.Jaxpr):
-                    _dot_precisions(sub, found)
+    found.extend(eqn.params["precision"] for eqn in jaxpr_equations(jaxpr) if eqn.primitive.name == "dot_general")
     return found
 
 

@@ -16,7 +16,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 import jaxquat as jq
-from helpers import DTYPE, X64, assert_close
+from helpers import DTYPE, X64, assert_close, jaxpr_equations
 
 MASS, GRAVITY, DRAG = 1.2, 9.81, 0.3
 INERTIA = np.array([0.02, 0.03, 0.05])
@@ -301,18 +301,9 @@ def test_the_fixed_step_driver_matches_diffeqsolve_on_a_user_model():
         assert_close(ys[k], sol.ys[k], tol=1e-11 if X64 else 1e-4, what=k)
 
 
-def _scan_lengths(jaxpr, found):
+def _scan_lengths(jaxpr):
     """The ``length`` of every ``scan`` in ``jaxpr`` and the jaxprs inside it."""
-    for eqn in jaxpr.eqns:
-        if eqn.primitive.name == "scan":
-            found.append(eqn.params["length"])
-        for param in eqn.params.values():
-            for sub in param if isinstance(param, (list, tuple)) else [param]:
-                if isinstance(sub, jax.extend.core.ClosedJaxpr):
-                    _scan_lengths(sub.jaxpr, found)
-                elif isinstance(sub, jax.extend.core.Jaxpr):
-                    _scan_lengths(sub, found)
-    return found
+    return [eqn.params["length"] for eqn in jaxpr_equations(jaxpr) if eqn.primitive.name == "scan"]
 
 
 def test_the_fixed_step_driver_over_one_interval_has_no_scan_of_length_one():
@@ -334,7 +325,7 @@ def test_the_fixed_step_driver_over_one_interval_has_no_scan_of_length_one():
             solver, diffrax.ODETerm(quadrotor), jnp.asarray([0.0, 0.5], DTYPE), y, THRUST, substeps=4
         )
     )(_y0())
-    lengths = _scan_lengths(jaxpr.jaxpr, [])  # the steps' 4 (and the RKMK stages' own scan)
+    lengths = _scan_lengths(jaxpr.jaxpr)  # the steps' 4 (and the RKMK stages' own scan)
     assert 1 not in lengths and 4 in lengths, lengths
     q0, w0 = jnp.asarray([[1.0, 0, 0, 0]], DTYPE), jnp.asarray([[0.1, 1.0, 0.2]], DTYPE)
     inertia = jnp.diag(jnp.asarray([1.0, 2.0, 3.0], DTYPE))
@@ -342,7 +333,7 @@ def test_the_fixed_step_driver_over_one_interval_has_no_scan_of_length_one():
     jaxpr = jax.make_jaxpr(
         jax.grad(lambda w: jnp.sum(jq.simulate(q0, w, inertia, ts, solver=jq.RKMK4(), dt0=0.1).q[..., -1, :] ** 2))
     )(w0)
-    lengths = _scan_lengths(jaxpr.jaxpr, [])
+    lengths = _scan_lengths(jaxpr.jaxpr)
     assert 1 not in lengths and 10 in lengths, lengths
 
 
