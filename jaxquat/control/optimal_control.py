@@ -59,17 +59,25 @@ class ReactionWheels(NamedTuple):
 
 
 def _cones(keep_out, keep_in, dtype) -> np.ndarray:
-    """Rows ``(body axis, inertial direction, cos(half angle), sign)``, unit vectors; the
-    constraint is ``sign (s . R(q) a - cos(half)) <= 0``: sign ``+1`` keep-out, ``-1`` keep-in."""
+    """Rows ``(body axis, inertial direction, cos(half angle), sign, frame)``, unit vectors; the
+    constraint is ``sign (s . R(p) a - cos(half)) <= 0``: sign ``+1`` keep-out, ``-1`` keep-in;
+    ``p`` the attitude ``q`` (frame 0, a cone given as a triple) or a user model's ``j``-th extra
+    quaternion (frame ``j``, a cone given as ``(axis, direction, half_angle, j)``)."""
     rows = []
     for name, sign, cones in (("keep_out", 1.0, keep_out), ("keep_in", -1.0, keep_in)):
         for i, cone in enumerate(cones):
             try:
-                axis, direction, half = cone
+                axis, direction, half, *frame = cone
             except (TypeError, ValueError):
+                frame = [None, None]
+            if len(frame) > 1:
                 raise ValueError(
-                    f"{name}[{i}] must be (body_axis (3,), inertial_direction (3,), half_angle_rad), got {cone!r}"
-                ) from None
+                    f"{name}[{i}] must be (body_axis (3,), inertial_direction (3,), half_angle_rad) or that and "
+                    f"the frame (0: the body, j >= 1: a model's j-th extra quaternion), got {cone!r}"
+                )
+            frame = frame[0] if frame else 0
+            if isinstance(frame, bool) or not isinstance(frame, (int, np.integer)) or frame < 0:
+                raise ValueError(f"{name}[{i}]: the frame must be an int >= 0, got {frame!r}")
             axis, direction = np.asarray(axis, np.float64), np.asarray(direction, np.float64)
             half = float(half)
             if axis.shape != (3,) or direction.shape != (3,):
@@ -79,9 +87,19 @@ def _cones(keep_out, keep_in, dtype) -> np.ndarray:
                 )
             if not (np.linalg.norm(axis) > 0 and np.linalg.norm(direction) > 0 and 0 < half < np.pi):
                 raise ValueError(f"{name}[{i}]: the axes must be non-zero and 0 < half_angle_rad < pi, got {cone!r}")
-            unit = [axis / np.linalg.norm(axis), direction / np.linalg.norm(direction), [np.cos(half), sign]]
+            unit = [axis / np.linalg.norm(axis), direction / np.linalg.norm(direction), [np.cos(half), sign, frame]]
             rows.append(np.concatenate(unit))
-    return np.asarray(rows, np.float64).reshape(-1, 8).astype(dtype)
+    return np.asarray(rows, np.float64).reshape(-1, 9).astype(dtype)
+
+
+def _check_cone_frames(cones: np.ndarray, quaternions: int) -> None:
+    """Every cone's frame names the body (0) or one of the model's ``quaternions`` extra ones."""
+    frames = np.asarray(cones)[:, 8].astype(int)
+    if np.any(frames > quaternions):
+        raise ValueError(
+            f"arguments 'keep_out'/'keep_in': a cone's frame must be 0 (the body) or 1..{quaternions} (the "
+            f"model's extra quaternions), got frames {frames.tolist()}"
+        )
 
 
 def check_grid(intervals, substeps) -> None:
@@ -495,7 +513,10 @@ def optimal_reorientation(
         torque_bound: per-axis body torque bound ``(3,)``, or ``None``.
         rate_bound: ``|w_i| <= rate_bound`` at every integration step, or ``None``.
         keep_out: ``(body_axis (3,), inertial_direction (3,), half_angle_rad)`` cones the body
-            axis's inertial image stays out of, at every integration step.
+            axis's inertial image stays out of, at every integration step; with a ``model``
+            whose ``extra_quaternions`` are ``k``, a fourth entry ``j`` in ``1..k`` puts the cone
+            on the ``j``-th extra quaternion's axis instead (a gimballed payload's boresight;
+            ``0``, the default, is the body).
         keep_in: cones of the same form it stays in.
         intervals: number of torque intervals ``N`` (ignored when ``mesh`` is given).
         substeps: RKMK4 steps per interval.
@@ -546,6 +567,7 @@ def optimal_reorientation(
     inertia, q0, qf, w0, wf, bound, rate_bound, cones = _prepare(
         inertia, q0, qf, omega0, omegaf, None if model is not None else torque_bound, rate_bound, keep_out, keep_in
     )
+    _check_cone_frames(cones, model.extra_quaternions if isinstance(model, ControlledModel) else 0)
     if model is not None:
         boundary = (inertia, q0, qf, w0, wf, rate_bound, cones)
         options = _options(tol, max_iter, throw, starts, seed, init)
@@ -747,7 +769,9 @@ def minimum_energy_reorientation(
         omegaf: final body rate ``(..., 3)``; default rest.
         torque_bound: per-axis body torque bound ``(3,)``, or ``None``.
         rate_bound: ``|w_i| <= rate_bound`` at every integration step, or ``None``.
-        keep_out: ``(body_axis (3,), inertial_direction (3,), half_angle_rad)`` cones.
+        keep_out: ``(body_axis (3,), inertial_direction (3,), half_angle_rad)`` cones (a fourth
+            entry ``j >= 1`` puts one on a ``model``'s ``j``-th extra quaternion instead, as in
+            :func:`jaxquat.optimal_reorientation`).
         keep_in: cones of the same form the axis stays in.
         intervals: number of torque intervals (ignored when ``mesh`` is given).
         substeps: RKMK4 steps per interval.

@@ -39,9 +39,9 @@ from jax import Array
 
 from .. import _arrays, _quaternion
 from ..integration.fixed_step import solve_fixed_steps
-from ..integration.lie_solvers import RKMK4, BodyRateTerm
+from ..integration.lie_solvers import RKMK4, BodyRateTerm, body_rate
 from ..manifold.lie import minus, plus
-from .controlled_model import control_matrix, join_state, lie_field, rates, renormalised, split_state
+from .controlled_model import join_state, lie_field, rates, renormalised, split_state
 from .interior_point import ShootingProblem, solve_shooting
 
 __all__ = ["ConstrainedReorientation"]
@@ -101,7 +101,7 @@ class Data(NamedTuple):
     u_ref: Array  # (3,) torque scale
     w_ref: Array  # rate scale
     rate_bound: Array  # (inf: none)
-    cones: Array  # (n, 8): body axis, inertial direction, cos(half angle), +1 keep-out / -1 keep-in
+    cones: Array  # (n, 9): body axis, inertial direction, cos(half angle), +1 keep-out / -1 keep-in, frame
     weights: Array  # (3,) of the time, int |u|^2 dt and int |u|_1 dt in the cost
     fractions: Array  # (N,) interval lengths over the duration (sum 1; used when not uniform)
     axes: Array  # (n, 3) wheel spin axes ((0, 3): the rigid body, torqued directly)
@@ -238,8 +238,15 @@ def _path(cfg: Config, data: Data, qs, ws, hs, c, p, k):
         parts += [(r - 1.0).ravel(), (-r - 1.0).ravel()]
     if cfg.n_cones:
         qn = qs / jnp.linalg.norm(qs, axis=-1, keepdims=True)
-        axes = jax.vmap(lambda c: jax.vmap(lambda qq: _quaternion.rotate(qq, c[:3]))(qn))(
-            data.cones
+        if cfg.model_quaternions:  # a cone's frame: q (0) or the j-th extra quaternion (j)
+            extra = split_state(hs, cfg.model_quaternions)[0]
+            extra = extra / jnp.linalg.norm(extra, axis=-1, keepdims=True)  # as q: the cone, not |p|^2 times it
+            frames = jnp.concatenate([qn[:, None], extra], axis=1)
+            per_cone = jnp.moveaxis(frames[:, data.cones[:, 8].astype(jnp.int32)], 1, 0)  # (n, substeps, 4)
+        else:
+            per_cone = jnp.broadcast_to(qn, (data.cones.shape[0], *qn.shape))
+        axes = jax.vmap(lambda c, qc: jax.vmap(lambda qq: _quaternion.rotate(qq, c[:3]))(qc))(
+            data.cones, per_cone
         )  # (n, substeps, 3)
         cosines = jnp.einsum("csi,ci->cs", axes, data.cones[:, 3:6])
         parts.append((data.cones[:, 7:8] * (cosines - data.cones[:, 6:7])).ravel())
@@ -326,23 +333,56 @@ def _profile(min_time: bool, s):
     return 3 * s * s - 2 * s**3, 6 * s * (1 - s), 6 - 12 * s
 
 
-def _model_guess(cfg: Config, data: Data, qm, wm, am):
+def _model_guess(cfg: Config, data: Data, qm, wm, am, fm, fn):
     """A user model's guess along the eigenaxis profile (midpoint attitudes, rates and
-    accelerations ``(N, .)``): per interval the least-squares controls ``B^+ (a - w'(u = 0))``
-    at the midpoint, and ``z`` stepped by explicit Euler. Returns the node ``z`` ``(N, m)`` and
-    the controls ``(N, n)``."""
+    accelerations ``(N, .)``; ``fm``, ``fn`` the midpoints' and the nodes' fractions of the
+    duration): per interval the least-squares controls at the midpoint, and ``z`` stepped by
+    explicit Euler. An extra quaternion with a given final value (``extra_final``) and a cone on
+    its axis follows its geodesic at a constant body rate (its nodes are set there, and its rate
+    joins the body's acceleration in the least squares): stepped from its start alone, the
+    first Newton step had to carry it the whole way in one linearisation, and a cone on its axis
+    jammed the interior point (the gimballed payload of ``tests/test_optimal_control.py``, session
+    27: the last substep's cone slack shrank 100x per iteration). Without a cone the plain guess
+    stays (that payload's slew: 11 iterations from it, 17 from the geodesic). The controls are
+    ``B^+ (target - rows(u = 0))``, ``rows`` the body's ``w'`` and those quaternions' body rates
+    (zero rows where not used), ``B`` their Jacobian in ``u``. Returns the node ``z`` ``(N, m)``
+    and the controls ``(N, n)``."""
     lengths = data.duration * data.fractions
+    k = cfg.model_quaternions
+    fixed = [j for j in range(k) if cfg.n_cones and cfg.model_fixed and cfg.model_fixed[4 * j]]
+    starts = split_state(data.h0, k)[0]
+    turns = {j: minus(split_state(data.model_final, k)[0][j], starts[j]) for j in fixed}
+    # 1 where quaternion j has a cone on its axis (cone frame j + 1; the frames are data), else 0
+    used = {j: jnp.any(data.cones[:, 8] == j + 1).astype(data.h0.dtype) for j in fixed}
+
+    def on_geodesics(z, f):  # z with each coned, given quaternion at the fraction f of its geodesic
+        if not fixed:
+            return z
+        P, r = split_state(z, k)
+        for j in fixed:
+            P = P.at[j].set(jnp.where(used[j] > 0, plus(starts[j], f * turns[j]), P[j]))
+        return join_state(P, r)
 
     def interval(z, xs):
-        q, w, a, h = xs
-        B, wdot0 = control_matrix(cfg.model, (q, w, z), data.model_args, cfg.model_controls)
-        u = jnp.linalg.pinv(B) @ (a - wdot0)
-        z = z + h * rates(cfg.model, (q, w, z), u, data.model_args)[2]
-        if cfg.model_quaternions:  # an Euler step leaves the unit sphere
-            z = renormalised(z, cfg.model_quaternions)
+        q, w, a, h, f_mid, f_end = xs
+        y = (q, w, on_geodesics(z, f_mid))
+
+        def rows(u):  # the value comes out of the Jacobian's own primal pass
+            _, dw, dz = rates(cfg.model, y, u, data.model_args)
+            P, dP = split_state(y[2], k)[0], split_state(dz, k)[0]
+            value = jnp.concatenate([dw, *[used[j] * body_rate(P[j], dP[j]) for j in fixed]])
+            return value, value
+
+        B, free = jax.jacfwd(rows, has_aux=True)(jnp.zeros(cfg.model_controls, q.dtype))
+        target = jnp.concatenate([a, *[used[j] * turns[j] / data.duration for j in fixed]])
+        u = jnp.linalg.pinv(B) @ (target - free)
+        z = z + h * rates(cfg.model, y, u, data.model_args)[2]
+        if k:  # an Euler step leaves the unit sphere
+            z = renormalised(z, k)
+        z = on_geodesics(z, f_end)
         return z, (z, u)
 
-    return jax.lax.scan(interval, data.h0, (qm, wm, am, lengths))[1]
+    return jax.lax.scan(interval, data.h0, (qm, wm, am, lengths, fm, fn))[1]
 
 
 def initial_guess(cfg: Config, data: Data):
@@ -365,7 +405,7 @@ def initial_guess(cfg: Config, data: Data):
     am = accel[:, None] * rotvec[None] / data.duration**2 + (data.wf - data.w0)[None] / data.duration
     if cfg.model is not None:
         # the model's own dynamics and control matrix at the profile's midpoints
-        hs, u = _model_guess(cfg, data, along(shape_m), wm, am)
+        hs, u = _model_guess(cfg, data, along(shape_m), wm, am, sm, s)
     elif cfg.wheels:
         # Wheel momenta from the body-frame momentum balance without its rotation,
         # A^T (h - h0) = -J (w - w0), and the wheel torques A^T u = -(J a + w x (J w + A^T h)).
