@@ -122,8 +122,9 @@ def scan_steps(
     # One interval (``ts`` of two times, as in a simulation saved only at its end): no scan of
     # length 1 around the steps' scan. Each transform of a scan traces its body again, so the
     # extra level cost reverse mode its tracing: the first optax Adam step through ``simulate``
-    # (batch 1000, 1000 RKMK4 steps, float32, this 2-core CPU) 1.84-1.97 s before, 1.55-1.60 s
-    # after (tracing 0.51 -> 0.35 s, XLA 1.50 -> 1.07 s); values and gradients bit-identical.
+    # (batch 1000, 1000 RKMK4 steps, float32, this 2-core CPU; before and after interleaved, three
+    # fresh processes each) 1.78-2.11 s before, 1.53-1.60 s after (tracing and lowering 0.61-0.75
+    # -> 0.40 s, XLA 1.08-1.25 -> 1.05-1.10 s); values and gradients bit-identical.
     if ts.shape[0] == 2:
         _, y1 = interval(y0, jax.tree.map(lambda x: x[0], (ts[:-1], ts[1:], interval_args)))
         ys = jax.tree.map(lambda a: jnp.asarray(a)[None], y1)
