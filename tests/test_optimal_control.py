@@ -695,9 +695,8 @@ def test_a_damped_user_model_meets_the_exact_held_torque_optimum(damped_energy):
 
         def rhs(t, y, u=u):  # the model in NumPy (J = I): q' = 1/2 q (0, w), w' = u - c w, z' = |u|^2
             uk = u[min(int(t / (2.0 / N)), N - 1)]
-            (a, b, c, d), w = y[:4], y[4:7]
-            qdot = 0.5 * np.array([-b * w[0] - c * w[1] - d * w[2], a * w[0] + c * w[2] - d * w[1],
-                                   a * w[1] + d * w[0] - b * w[2], a * w[2] + b * w[1] - c * w[0]])  # fmt: skip
+            w = y[4:7]
+            qdot = 0.5 * _np_multiply(y[:4], np.array([0.0, *w]))
             return np.concatenate([qdot, uk - 0.5 * w, [uk @ uk]])
 
         y = np.concatenate([Q0, np.zeros(4)])
