@@ -167,6 +167,20 @@ def test_bilimoria_wie_at_sixty_intervals_from_one_start_converges_without_a_jam
     assert 3.24308 < float(r.time) < 3.2440  # measured 3.2434343 (12 intervals: 3.2647)
 
 
+def test_the_solver_compiles_with_the_older_cpu_emitters_where_xla_has_them():
+    """The multiple-shooting solver's ``jit`` asks for XLA's older elemental CPU emitters (its first
+    call 8.4-9.0 s against 10.5-12.6 s on the three benchmark slews, ``_solver_compiler_options``),
+    on a jaxlib that has the option (below 0.11; 0.11.2's XLA no longer does), and for nothing
+    otherwise. The suite itself runs with the option set for every program (``conftest.py``), so
+    the solves here cannot show the difference; this checks the probe."""
+    from importlib.metadata import version
+
+    from jaxquat.control import transcription as tr
+
+    known = tuple(int(x) for x in version("jaxlib").split(".")[:2]) < (0, 11)
+    assert tr._solver_compiler_options() == ({"xla_cpu_use_fusion_emitters": False} if known else None)
+
+
 # ------------------------------------------------------------------ minimum energy
 
 

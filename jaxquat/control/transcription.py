@@ -30,6 +30,7 @@ solver closes the defects.
 from __future__ import annotations
 
 import functools
+from importlib.metadata import PackageNotFoundError, version
 from typing import Any, NamedTuple
 
 import jax
@@ -478,8 +479,46 @@ def _start(cfg: Config, data: Data, init):
 _REVERSE_HESSIAN_PAIRS = 16  # (problem, start) pairs from which the batch uses hessian="reverse"
 
 
-@functools.partial(jax.jit, static_argnames=("cfg",))
 def solve(data: Data, cfg: Config, tol, max_iter, keys, init=None):
+    """:func:`_solve`, jitted (``cfg`` static) with :func:`_solver_compiler_options`."""
+    return _jitted_solve()(data, cfg, tol, max_iter, keys, init)
+
+
+@functools.cache
+def _jitted_solve():
+    return jax.jit(_solve, static_argnames=("cfg",), compiler_options=_solver_compiler_options())
+
+
+@functools.cache
+def _solver_compiler_options() -> dict[str, Any] | None:
+    """XLA's older elemental CPU emitters for the solver's program (``xla_cpu_use_fusion_emitters``
+    off, for this one ``jit`` only), where the installed XLA knows the option; otherwise None.
+
+    The solver is a large program run once per call, so its compile time is what a first call
+    waits for. Measured (float64, one start, this 2-core EPYC, ``OPENBLAS_NUM_THREADS=1``; first
+    call then the best of two more): Bilimoria-Wie at 80 intervals, first call 10.5 -> 8.5 s and
+    solve 0.93 -> 0.75 s; Betts asyq01 at 120, 11.1 -> 8.9 s and 0.88 -> 0.72 s; the three-wheel
+    slew at 80, 12.6 -> 9.1 s and 1.02 -> 0.69 s; the same iterations and optima (to 1e-15);
+    100 slews in one call (40 intervals) 11.30 -> 10.86 s. Also tried: LLVM's expensive passes
+    off (10.6 s, solve 0.93 s) and backend optimisation level 1 (9.7 s, solve 1.02 s). Both
+    emitters compute the same IEEE operations; where a fusion evaluates in another order the
+    rounding differs. jaxlib 0.11 no longer has the option (its ``XLA_FLAGS`` form aborted the
+    process there, session 21), so it is not tried from 0.11 on; below, one tiny compile decides
+    (an older XLA without the option, or a ``jit`` without ``compiler_options``, gets None)."""
+    try:
+        if tuple(int(x) for x in version("jaxlib").split(".")[:2]) >= (0, 11):
+            return None
+    except (PackageNotFoundError, ValueError):
+        return None
+    options = {"xla_cpu_use_fusion_emitters": False}
+    try:
+        jax.jit(lambda x: x + 1, compiler_options=options).lower(jnp.zeros(())).compile()
+    except Exception:  # an XLA that does not know the option, or a jit without compiler_options
+        return None
+    return options
+
+
+def _solve(data: Data, cfg: Config, tol, max_iter, keys, init=None):
     """A batch of problems (``data`` with a leading axis ``B``), every start of each (one per row
     of ``keys``) solved side by side, then each problem's best start: the least cost among the
     converged starts (the least KKT residual if none converged). Start 0 is the eigenaxis guess
