@@ -167,18 +167,36 @@ def test_bilimoria_wie_at_sixty_intervals_from_one_start_converges_without_a_jam
     assert 3.24308 < float(r.time) < 3.2440  # measured 3.2434343 (12 intervals: 3.2647)
 
 
-def test_the_solver_compiles_with_the_older_cpu_emitters_where_xla_has_them():
-    """The multiple-shooting solver's ``jit`` asks for XLA's older elemental CPU emitters (its first
-    call 8.4-9.0 s against 10.5-12.6 s on the three benchmark slews, ``_solver_compiler_options``),
-    on a jaxlib that has the option (below 0.11; 0.11.2's XLA no longer does), and for nothing
-    otherwise. The suite itself runs with the option set for every program (``conftest.py``), so
-    the solves here cannot show the difference; this checks the probe."""
+def test_the_solver_compiles_with_its_own_xla_options_on_the_cpu():
+    """The multiple-shooting solver's ``jit`` asks XLA, on the CPU, for its older elemental
+    emitters (its first call 8.4-9.0 s against 10.5-12.6 s on the three benchmark slews) on a
+    jaxlib that has the option (below 0.11; 0.11.2's XLA no longer does), and to skip its
+    while-loop-invariant code motion (7.35-7.69 s against 7.74-8.53 s; ``_solver_compiler_options``).
+    The suite itself runs with the emitters option set for every program (``conftest.py``), so
+    the solves here cannot show the difference; this checks what the probe asks for, and that
+    a program compiled with them computes what the default compile does."""
     from importlib.metadata import version
 
     from jaxquat.control import transcription as tr
 
+    options = tr._solver_compiler_options()
+    if jax.default_backend() != "cpu":
+        assert options is None
+        return
+    assert options is not None
+    assert options["xla_disable_hlo_passes"] == "while-loop-invariant-code-motion"
     known = tuple(int(x) for x in version("jaxlib").split(".")[:2]) < (0, 11)
-    assert tr._solver_compiler_options() == ({"xla_cpu_use_fusion_emitters": False} if known else None)
+    assert ("xla_cpu_use_fusion_emitters" in options) == known
+    if known:
+        assert options["xla_cpu_use_fusion_emitters"] is False
+
+    def loop(x):
+        return jax.lax.fori_loop(0, 5, lambda i, y: jnp.sin(y) + jnp.cos(x) * i, x)
+
+    x = jnp.linspace(0.0, 1.0, 7)
+    with_options = jax.jit(loop, compiler_options=options)(x)
+    # to rounding: under JAXQUAT_TEST_XLA_DEFAULTS=1 the plain jit uses the fusion emitters
+    np.testing.assert_allclose(np.asarray(with_options), np.asarray(jax.jit(loop)(x)), rtol=1e-14, atol=0)
 
 
 # ------------------------------------------------------------------ minimum energy

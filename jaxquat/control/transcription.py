@@ -491,31 +491,44 @@ def _jitted_solve():
 
 @functools.cache
 def _solver_compiler_options() -> dict[str, Any] | None:
-    """XLA's older elemental CPU emitters for the solver's program (``xla_cpu_use_fusion_emitters``
-    off, for this one ``jit`` only), where the installed XLA knows the option; otherwise None.
+    """The XLA options of the solver's program (for this one ``jit`` only), on the CPU: XLA's
+    older elemental emitters (``xla_cpu_use_fusion_emitters`` off) where the installed XLA knows
+    the option, and its while-loop-invariant code motion pass off; None where neither applies.
 
     The solver is a large program run once per call, so its compile time is what a first call
     waits for. Measured (float64, one start, this 2-core EPYC, ``OPENBLAS_NUM_THREADS=1``; first
-    call then the best of two more): Bilimoria-Wie at 80 intervals, first call 10.5 -> 8.5 s and
-    solve 0.93 -> 0.75 s; Betts asyq01 at 120, 11.1 -> 8.9 s and 0.88 -> 0.72 s; the three-wheel
-    slew at 80, 12.6 -> 9.1 s and 1.02 -> 0.69 s; the same iterations and optima (to 1e-15);
-    100 slews in one call (40 intervals) 11.30 -> 10.86 s. Also tried: LLVM's expensive passes
-    off (10.6 s, solve 0.93 s) and backend optimisation level 1 (9.7 s, solve 1.02 s). Both
-    emitters compute the same IEEE operations; where a fusion evaluates in another order the
-    rounding differs. jaxlib 0.11 no longer has the option (its ``XLA_FLAGS`` form aborted the
-    process there, session 21), so it is not tried from 0.11 on; below, one tiny compile decides
-    (an older XLA without the option, or a ``jit`` without ``compiler_options``, gets None)."""
+    call then the best of two more), the older emitters: Bilimoria-Wie at 80 intervals, first
+    call 10.5 -> 8.5 s and solve 0.93 -> 0.75 s; Betts asyq01 at 120, 11.1 -> 8.9 s and 0.88 ->
+    0.72 s; the three-wheel slew at 80, 12.6 -> 9.1 s and 1.02 -> 0.69 s; the same iterations and
+    optima (to 1e-15); 100 slews in one call (40 intervals) 11.30 -> 10.86 s. Also tried: LLVM's
+    expensive passes off (10.6 s, solve 0.93 s) and backend optimisation level 1 (9.7 s, solve
+    1.02 s). Both emitters compute the same IEEE operations; where a fusion evaluates in another
+    order the rounding differs. jaxlib 0.11 no longer has the option (its ``XLA_FLAGS`` form
+    aborted the process there, session 21), so it is not asked for from 0.11 on.
+
+    The code motion pass (``xla_disable_hlo_passes``): XLA's pass log put 1.1 s of the 3.9 s of
+    HLO passes on the suite's payload model there (with the simplification of while loops, 0.9 s
+    more, and not removed: it gained nothing more). Without it, on the same slews (runs
+    interleaved, two each): first call 7.74-8.04 -> 7.35 s, 7.75-8.02 -> 7.50 s, 8.53-9.12 ->
+    7.69-8.58 s, and solves 0.71-0.73 -> 0.65 s, 0.67-0.69 -> 0.60-0.61 s, 0.66-0.67 -> 0.64-0.66 s
+    (hoisting out of the Newton loop saves nothing in a body run once per iteration); the same
+    iterations and optima to the last digit printed (1e-10). Only on the CPU: not measured on
+    a GPU. One tiny compile decides what the installed XLA accepts."""
+    if jax.default_backend() != "cpu":
+        return None
+    candidates: list[dict[str, Any]] = [{"xla_disable_hlo_passes": "while-loop-invariant-code-motion"}]
     try:
-        if tuple(int(x) for x in version("jaxlib").split(".")[:2]) >= (0, 11):
-            return None
+        if tuple(int(x) for x in version("jaxlib").split(".")[:2]) < (0, 11):
+            candidates.insert(0, {**candidates[0], "xla_cpu_use_fusion_emitters": False})
     except (PackageNotFoundError, ValueError):
-        return None
-    options = {"xla_cpu_use_fusion_emitters": False}
-    try:
-        jax.jit(lambda x: x + 1, compiler_options=options).lower(jnp.zeros(())).compile()
-    except Exception:  # an XLA that does not know the option, or a jit without compiler_options
-        return None
-    return options
+        pass
+    for options in candidates:
+        try:
+            jax.jit(lambda x: x + 1, compiler_options=options).lower(jnp.zeros(())).compile()
+        except Exception:  # an XLA that does not know an option, or a jit without compiler_options
+            continue
+        return options
+    return None
 
 
 def _solve(data: Data, cfg: Config, tol, max_iter, keys, init=None):
