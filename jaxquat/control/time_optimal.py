@@ -49,7 +49,6 @@ the discretisation).
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Sequence
 from typing import NamedTuple
@@ -74,7 +73,7 @@ from .optimal_control import (
     constrained_minimum_time,
 )
 from .controlled_model import ControlledModel
-from .transcription import ConstrainedReorientation, held_torque_states
+from .transcription import ConstrainedReorientation, held_torque_states, solver_jit
 
 __all__ = ["Reorientation", "minimum_time_reorientation"]
 
@@ -232,7 +231,6 @@ def _switching(x, lam, pr: _Problem, substeps: int):
     )
 
 
-@functools.partial(jax.jit, static_argnames=("substeps", "iters"))
 def _refine(x, pr: _Problem, substeps: int, iters: int):
     """Newton's method on the KKT conditions of ``min T s.t. c = 0`` (SQP with the exact Hessian),
     one start at a time (vmapped): ``[[H, J^T], [J, 0]] (dz, lam) = -(grad T, c)``, the first
@@ -286,7 +284,6 @@ def _refine(x, pr: _Problem, substeps: int, iters: int):
     return jax.vmap(one)(jax.vmap(lambda xi: ravel_pytree(xi)[0])(x))
 
 
-@functools.partial(jax.jit, static_argnames=("substeps", "inner"))
 def _solve(x, lam, mu, pr: _Problem, substeps: int, inner: int):
     """One augmented-Lagrangian inner solve per start (vmapped), then the projected copy."""
 
@@ -512,7 +509,9 @@ def minimum_time_reorientation(
 
         bar = tqdm(total=outer, desc="minimum time", leave=False)
     for _ in range(outer):
-        x, c, x_pol, c_pol, times = _solve(x, lam, jnp.asarray(mus, dtype), problem, substeps, inner)
+        x, c, x_pol, c_pol, times = solver_jit(_solve, ("substeps", "inner"))(
+            x, lam, jnp.asarray(mus, dtype), problem, substeps, inner
+        )
         c = np.asarray(c)
         lam = lam + jnp.asarray(mus[:, None] * c, dtype)
         mus = np.where(np.linalg.norm(c, axis=-1) > 0.25 * prev, np.minimum(10 * mus, _MU_MAX), mus)
@@ -557,7 +556,9 @@ def minimum_time_reorientation(
     # made between converged optima, not between wherever each start's budget ran out.
     x_ref, mults, kkt_res, t_ref_all, viol_ref, sigmas = (
         jax.tree_util.tree_map(np.asarray, out)
-        for out in _refine({key: jnp.asarray(v) for key, v in best_x.items()}, problem, substeps, refine)
+        for out in solver_jit(_refine, ("substeps", "iters"))(
+            {key: jnp.asarray(v) for key, v in best_x.items()}, problem, substeps, refine
+        )
     )
     converged = kkt_res <= _CONVERGED
     feasible = (viol_ref <= tol) & (converged if np.any(converged & (viol_ref <= tol)) else True)

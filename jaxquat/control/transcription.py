@@ -480,13 +480,17 @@ _REVERSE_HESSIAN_PAIRS = 16  # (problem, start) pairs from which the batch uses 
 
 
 def solve(data: Data, cfg: Config, tol, max_iter, keys, init=None):
-    """:func:`_solve`, jitted (``cfg`` static) with :func:`_solver_compiler_options`."""
-    return _jitted_solve()(data, cfg, tol, max_iter, keys, init)
+    """:func:`_solve`, jitted (``cfg`` static) by :func:`solver_jit`."""
+    return solver_jit(_solve, ("cfg",))(data, cfg, tol, max_iter, keys, init)
 
 
 @functools.cache
-def _jitted_solve():
-    return jax.jit(_solve, static_argnames=("cfg",), compiler_options=_solver_compiler_options())
+def solver_jit(fn, static_argnames: tuple[str, ...] = ()):
+    """``jax.jit(fn)`` with :func:`_solver_compiler_options`, made on first use (the options are
+    probed by a compile, which ``import jaxquat`` must not wait for) and kept: the jit of the
+    package's solver programs, each large and run once per call (this multiple-shooting solver,
+    the single-shooting one of :mod:`jaxquat.control.time_optimal`)."""
+    return jax.jit(fn, static_argnames=static_argnames, compiler_options=_solver_compiler_options())
 
 
 @functools.cache
@@ -512,8 +516,11 @@ def _solver_compiler_options() -> dict[str, Any] | None:
     interleaved, two each): first call 7.74-8.04 -> 7.35 s, 7.75-8.02 -> 7.50 s, 8.53-9.12 ->
     7.69-8.58 s, and solves 0.71-0.73 -> 0.65 s, 0.67-0.69 -> 0.60-0.61 s, 0.66-0.67 -> 0.64-0.66 s
     (hoisting out of the Newton loop saves nothing in a body run once per iteration); the same
-    iterations and optima to the last digit printed (1e-10). Only on the CPU: not measured on
-    a GPU. One tiny compile decides what the installed XLA accepts."""
+    iterations and optima to the last digit printed (1e-10). The single-shooting solver's two
+    programs (``method="single_shooting"``, the suite's 10-interval asymmetric slew with 4 starts,
+    two runs each): first call 19.2-20.7 -> 16.9-17.1 s (compiles 4.5 + 5.1 -> 2.9 + 3.3 s),
+    the solve 1.78-1.86 against 1.70-1.90 s, the same time to 1e-12. Only on the CPU: not
+    measured on a GPU. One tiny compile decides what the installed XLA accepts."""
     if jax.default_backend() != "cpu":
         return None
     candidates: list[dict[str, Any]] = [{"xla_disable_hlo_passes": "while-loop-invariant-code-motion"}]
@@ -656,7 +663,9 @@ def redundant_final(cfg: Config, data: Data, time, u) -> list[int]:
 
     # one compiled program: 5.9 s with its compilation for a 10-interval problem (op by op, the
     # failed call that runs it took 1.2 s longer: 39.7 s against 38.5 s, one run each)
-    jac_u, jac_t = jax.jit(jax.jacrev(conditions, argnums=(0, 1)))(jnp.asarray(u), jnp.asarray(time))
+    jac_u, jac_t = jax.jit(jax.jacrev(conditions, argnums=(0, 1)), compiler_options=_solver_compiler_options())(
+        jnp.asarray(u), jnp.asarray(time)
+    )
     J = np.asarray(jac_u).reshape(jac_u.shape[0], -1)
     if cfg.min_time:
         J = np.concatenate([J, np.asarray(jac_t).reshape(-1, 1)], axis=1)
