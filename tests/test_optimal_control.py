@@ -126,6 +126,35 @@ def test_solve_shooting_matches_scipy_on_a_bounded_double_integrator():
     np.testing.assert_allclose(float(early.objective), expected_cost, rtol=1e-12)
 
 
+def test_no_trial_beyond_theta_max_is_accepted_however_far_the_objective_falls():
+    """Two stages ``x_{k+1} = x_k + sinh(u_k)`` from 0 to ``x_2 = 1``, cost ``-24 u_0 + u_0^2 / 2
+    + u_1^2 / 2``: from ``u = 0`` (violation theta_0 = 1) the first Newton step is about
+    ``du = (12.5, -11.5)``, whose full step misses by ``sinh(12.5) - sinh(11.5)``, 8.5e4, while the
+    cost falls. The filter starts empty, so only its bound ``theta_max = 1e4 max(1, theta_0)``
+    (Waechter & Biegler sec. 2.3) stops that trial: the first iterate's 1-norm violation must stay
+    below 1e4 (measured: 405, the half step; before the bound the full step was taken, 1.8e5), and
+    the solve still ends at a KKT point, u = (12.0, -12.0) in 19 iterations (the stationarity
+    conditions in closed form)."""
+    n = 2
+
+    def stage(x, u, p, data, k):
+        cost = jnp.where(k == 0, -24.0 * u[0], 0.0) + 0.5 * u[0] ** 2
+        return x + jnp.sinh(u), cost, jnp.full(1, -1.0, x.dtype)  # one inactive constraint
+
+    problem = jq.ShootingProblem(stage, lambda x, data: x - 1.0, lambda p, data: jnp.zeros(()))
+    start = (jnp.zeros(1), jnp.zeros((n, 1)), jnp.zeros((n, 1)), jnp.zeros(0))
+    first = jq.solve_shooting(problem, *start, max_iter=1)
+    X, U = np.asarray(first.x)[:, 0], np.asarray(first.u)[:, 0]
+    theta = np.abs(X[1] - np.sinh(U[0])) + np.abs(X[2] - X[1] - np.sinh(U[1])) + np.abs(X[2] - 1.0)
+    assert 1.0 < theta < 1e4, theta
+    sol = jq.solve_shooting(problem, *start)
+    assert bool(sol.converged)
+    u = np.asarray(sol.u)[:, 0]
+    # stationarity: (u_0 - 24) / cosh(u_0) = u_1 / cosh(u_1) (= -y), with sinh(u_0) + sinh(u_1) = 1
+    np.testing.assert_allclose(np.sinh(u).sum(), 1.0, atol=1e-9)
+    np.testing.assert_allclose((u[0] - 24.0) / np.cosh(u[0]), u[1] / np.cosh(u[1]), atol=1e-8)
+
+
 def test_the_inertia_correction_keeps_a_definite_spectrum_and_bounds_an_indefinite_one():
     """The reduced Hessian's corrected eigenvalues: a positive definite spectrum above the floor is
     kept (Newton's step, and its quadratic convergence, where the reduced Hessian is already
