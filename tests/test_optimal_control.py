@@ -129,8 +129,8 @@ def test_solve_shooting_matches_scipy_on_a_bounded_double_integrator():
 def test_no_trial_beyond_theta_max_is_accepted_however_far_the_objective_falls():
     """Two stages ``x_{k+1} = x_k + sinh(u_k)`` from 0 to ``x_2 = 1``, cost ``-24 u_0 + u_0^2 / 2
     + u_1^2 / 2``: from ``u = 0`` (violation theta_0 = 1) the first Newton step is about
-    ``du = (12.5, -11.5)``, whose full step misses by ``sinh(12.5) - sinh(11.5)``, 8.5e4, while the
-    cost falls. The filter starts empty, so only its bound ``theta_max = 1e4 max(1, theta_0)``
+    ``du = (12.5, -11.5)``, whose full step (a rollout of it misses by ``sinh(12.5) - sinh(11.5)``,
+    8.5e4) lowers the cost. The filter starts empty, so only its bound ``theta_max = 1e4 max(1, theta_0)``
     (Waechter & Biegler sec. 2.3) stops that trial: the first iterate's 1-norm violation must stay
     below 1e4 (measured: 405, the half step; before the bound the full step was taken, 1.8e5), and
     the solve still ends at a KKT point, u = (12.0, -12.0) in 19 iterations (the stationarity

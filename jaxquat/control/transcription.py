@@ -495,9 +495,10 @@ def solver_jit(fn, static_argnames: tuple[str, ...] = ()):
 
 @functools.cache
 def _solver_compiler_options() -> dict[str, Any] | None:
-    """The XLA options of the solver's program (for this one ``jit`` only), on the CPU: XLA's
-    older elemental emitters (``xla_cpu_use_fusion_emitters`` off) where the installed XLA knows
-    the option, and its while-loop-invariant code motion pass off; None where neither applies.
+    """The XLA options of the solvers' programs (:func:`solver_jit`, and the diagnosis of
+    :func:`redundant_final`; for these ``jit`` calls only), on the CPU: XLA's older elemental
+    emitters (``xla_cpu_use_fusion_emitters`` off) where the installed XLA knows the option, and
+    its while-loop-invariant code motion pass off; None where neither applies.
 
     The solver is a large program run once per call, so its compile time is what a first call
     waits for. Measured (float64, one start, this 2-core EPYC, ``OPENBLAS_NUM_THREADS=1``; first
