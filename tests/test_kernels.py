@@ -155,6 +155,46 @@ def test_atan2_over_n_second_derivatives():
 _sinc_parts = jax.jit(jax.vmap(lambda s: jax.jvp(_safe.sinc_cos_of_sq, (s,), (jnp.ones_like(s),))))
 
 
+_MOSTLY_SMALL_CASES = {
+    "all below the switch": np.linspace(0.0, 0.0199, 64),
+    "across it": np.concatenate([np.linspace(0.0, 0.0199, 60), [0.02, 0.5, 3.0, 40.0]]),
+    "all above it": np.linspace(0.02, 40.0, 64),
+}
+
+
+@pytest.mark.parametrize("name", list(_MOSTLY_SMALL_CASES))
+def test_sinc_cos_of_sq_mostly_small_is_sinc_cos_of_sq_with_its_derivatives(name):
+    """The integrator step's variant (its derivatives take the series alone when every element is
+    below the switch, through a ``lax.cond``) gives :func:`sinc_cos_of_sq`'s values, forward and
+    reverse derivatives, and second derivatives, whichever branch the cond takes, also under
+    ``vmap`` (rows of one case each: both branches run); to 2 eps (measured: equal)."""
+    s = jnp.asarray(_MOSTLY_SMALL_CASES[name], DTYPE)
+    weights = jnp.asarray(np.linspace(-1.0, 2.0, s.shape[0]), DTYPE)
+
+    def scalar(f):
+        return lambda x: jnp.sum(f(x)[0] * weights[: x.shape[0]]) + jnp.sum(f(x)[1] * weights[::-1][: x.shape[0]])
+
+    new, ref = _safe.sinc_cos_of_sq_mostly_small, _safe.sinc_cos_of_sq
+    pairs = [
+        (jax.jit(new)(s), jax.jit(ref)(s)),
+        (jax.jit(lambda x: jax.jvp(new, (x,), (weights,)))(s), jax.jit(lambda x: jax.jvp(ref, (x,), (weights,)))(s)),
+        (jax.jit(jax.grad(scalar(new)))(s), jax.jit(jax.grad(scalar(ref)))(s)),
+        (jax.jit(jax.hessian(scalar(new)))(s[:8]), jax.jit(jax.hessian(scalar(ref)))(s[:8])),
+        (jax.jit(jax.vmap(new))(jnp.stack([s, s[::-1] * 0.4])), jax.jit(jax.vmap(ref))(jnp.stack([s, s[::-1] * 0.4]))),
+    ]
+    for got, want in pairs:
+        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=2 * EPS, atol=2 * EPS)
+    # a NaN sends the whole array to the direct branch, as the reference's selection does
+    nan = jnp.asarray([0.01, jnp.nan], DTYPE)
+    for a, b in zip(jax.jit(new)(nan), jax.jit(ref)(nan)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(
+        np.asarray(jax.jit(jax.grad(lambda x: new(x)[0].sum()))(nan)),
+        np.asarray(jax.jit(jax.grad(lambda x: ref(x)[0].sum()))(nan)),
+    )
+
+
 def test_sinc_cos_of_sq_derivatives_against_references():
     """``d/ds`` of ``sin(x)/x`` and ``cos(x)`` with ``x = sqrt(s)``, across the series switch
     (``s = 0.02``) and at 0, against float64 references: below ``s = 0.5`` the power series

@@ -82,9 +82,11 @@ def multiply(p: Comps, q: Comps) -> Comps:
 
 def exp(theta: Comps) -> Comps:
     """``Exp(theta) = (cos(|theta|/2), sin(|theta|/2) theta/|theta|)`` (the series near 0, as
-    :func:`jaxquat.from_rotvec`: finite derivatives of every order at ``theta = 0``)."""
+    :func:`jaxquat.from_rotvec`: finite derivatives of every order at ``theta = 0``; a step's
+    ``theta`` is nearly always there, so its derivatives skip the direct branch when they can:
+    :func:`jaxquat._safe.sinc_cos_of_sq_mostly_small`)."""
     s = 0.25 * (theta[0] * theta[0] + theta[1] * theta[1] + theta[2] * theta[2])
-    sinc, cos = _safe.sinc_cos_of_sq(s)
+    sinc, cos = _safe.sinc_cos_of_sq_mostly_small(s)
     half = 0.5 * sinc
     return (cos, half * theta[0], half * theta[1], half * theta[2])
 
