@@ -89,11 +89,19 @@ def _sinc_cos_of_sq_parts(s: Array) -> tuple[Array, Array, Array]:
     return sinc, cos, d_sinc
 
 
-@sinc_cos_of_sq.defjvp
-def _sinc_cos_of_sq_jvp(primals, tangents):
-    (s,), (ds,) = primals, tangents
-    sinc, cos, d_sinc = _sinc_cos_of_sq_parts(s)
-    return (sinc, cos), (d_sinc * ds, -0.5 * sinc * ds)
+def _sinc_cos_jvp(parts):
+    """The JVP rule of ``(sinc, cos)`` of ``s`` from ``parts(s) = (sinc, cos, d sinc/ds)``:
+    ``d cos/ds = -sinc/2``."""
+
+    def rule(primals, tangents):
+        (s,), (ds,) = primals, tangents
+        sinc, cos, d_sinc = parts(s)
+        return (sinc, cos), (d_sinc * ds, -0.5 * sinc * ds)
+
+    return rule
+
+
+sinc_cos_of_sq.defjvp(_sinc_cos_jvp(_sinc_cos_of_sq_parts))
 
 
 @jax.custom_jvp
@@ -121,11 +129,7 @@ def _mostly_small_parts(s: Array) -> tuple[Array, Array, Array]:
     return jax.lax.cond(jnp.all(s < _TRIG_SWITCH), series, _sinc_cos_of_sq_parts, s)
 
 
-@sinc_cos_of_sq_mostly_small.defjvp
-def _sinc_cos_of_sq_mostly_small_jvp(primals, tangents):
-    (s,), (ds,) = primals, tangents
-    sinc, cos, d_sinc = _mostly_small_parts(s)
-    return (sinc, cos), (d_sinc * ds, -0.5 * sinc * ds)
+sinc_cos_of_sq_mostly_small.defjvp(_sinc_cos_jvp(_mostly_small_parts))
 
 
 @jax.custom_jvp
