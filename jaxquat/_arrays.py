@@ -33,6 +33,15 @@ def scalars(*xs: Array) -> tuple[Array, ...]:
     return _trig.on_cpu(lambda *a: jax.lax.optimization_barrier(a), lambda *a: a, *xs)
 
 
+def scalars_and_input(scalar: Array, x: Array) -> tuple[Array, Array]:
+    """:func:`scalars` for one scalar per element, stored together with the kernel's input ``x``,
+    whose returned copy XLA cannot identify with ``x``: what the kernel computes from the copy
+    after this point (cheap per-component expressions) is computed again from ``x`` in the
+    consumers' loops instead of being kept as separate arrays from before the barrier. On CPU
+    only, as :func:`scalars`."""
+    return _trig.on_cpu(lambda *a: jax.lax.optimization_barrier(a), lambda *a: a, scalar, x)
+
+
 def components(x: Array) -> list[Array]:
     """The components ``x[..., i]`` of ``x`` as separate arrays (one ``jnp.split``), for kernels
     written on components and assembled by :func:`assemble`.
