@@ -183,10 +183,10 @@ def to_euler(q: Float[ArrayLike, "*batch 4"], seq: str) -> Float[Array, "*batch 
     """
     seq = _checks.euler_seq(seq)
     # In components (one split, the scale taken on the components, one stack) with a closed-form
-    # JVP (_angles): at 10^6 (this 2-core CPU, float32, fresh processes, minimum of 9 runs each)
-    # the value took 7.2-7.8 ms against 17-19 ms and the gradient of sum(f(q) * W) 17-20 ms
-    # against 20-24 ms; float64 34-39 ms value and 42-48 ms gradient either way. One run in three
-    # of either version hit this machine's slow mode (the new value 16.6-17.1 ms).
+    # JVP (_angles): at 10^6 (this 2-core CPU, three fresh processes each, minimum of 9 runs in
+    # each) the float32 value took 7.5-7.8 ms against 17.1-19.5 ms (one process in three 16.6 ms:
+    # this machine's slow mode) and the gradient of sum(f(q) * W) 17.0-19.6 against 20.4-23.8 ms;
+    # float64 34-39 against 36-38 ms and 42-43 against 45-47 ms (docs/benchmarks.md).
     w, x, y, z = _safe.rescaled_components(*_arrays.components(_checks.quat(q)))
     first, middle, third = _angles(seq, w, x, y, z)
     if not _plan(seq).symmetric:
