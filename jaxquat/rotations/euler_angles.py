@@ -186,8 +186,10 @@ def to_euler(q: Float[ArrayLike, "*batch 4"], seq: str) -> Float[Array, "*batch 
     # JVP (_angles): at 10^6 (this 2-core CPU, three fresh processes each, minimum of 9 runs in
     # each) the float32 value took 7.5-7.8 ms against 17.1-19.5 ms (one process in three 16.6 ms:
     # this machine's slow mode) and the gradient of sum(f(q) * W) 17.0-19.6 against 20.4-23.8 ms;
-    # float64 34-39 against 36-38 ms and 42-43 against 45-47 ms (docs/benchmarks.md).
-    w, x, y, z = _safe.rescaled_components(*_arrays.components(_checks.quat(q)))
+    # float64 34-39 against 36-38 ms and 42-43 against 45-47 ms (docs/benchmarks.md). A plain
+    # split (_arrays.split), since the rule already makes the transpose element-wise: with the
+    # products of _arrays.components one jvp took 21 against 5.1 ms (float32).
+    w, x, y, z = _safe.rescaled_components(*_arrays.split(_checks.quat(q)))
     first, middle, third = _angles(seq, w, x, y, z)
     if not _plan(seq).symmetric:
         middle = middle - 0.5 * jnp.pi
