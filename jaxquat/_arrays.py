@@ -33,15 +33,6 @@ def scalars(*xs: Array) -> tuple[Array, ...]:
     return _trig.on_cpu(lambda *a: jax.lax.optimization_barrier(a), lambda *a: a, *xs)
 
 
-def scalars_and_input(scalar: Array, x: Array) -> tuple[Array, Array]:
-    """:func:`scalars` for one scalar per element, stored together with the kernel's input ``x``,
-    whose returned copy XLA cannot identify with ``x``: what the kernel computes from the copy
-    after this point (cheap per-component expressions) is computed again from ``x`` in the
-    consumers' loops instead of being kept as separate arrays from before the barrier. On CPU
-    only, as :func:`scalars`."""
-    return _trig.on_cpu(lambda *a: jax.lax.optimization_barrier(a), lambda *a: a, scalar, x)
-
-
 def components(x: Array) -> list[Array]:
     """The components ``x[..., i]`` of ``x`` as separate arrays (one ``jnp.split``), for kernels
     written on components and assembled by :func:`assemble`.
@@ -58,26 +49,22 @@ def components(x: Array) -> list[Array]:
     against 3.0 / 6.7 ms, ``to_rotvec`` 18 / 33 against 8.6 / 62 ms; every component taken by
     a product in the value too cost the value (``slerp`` 21 against 6 ms). Elsewhere (GPU, TPU)
     a plain split, differentiated by JAX."""
-    return list(_trig.on_cpu(_components, _split, x))
+    return list(_trig.on_cpu(_components, split, x))
 
 
-def split(x: Array) -> list[Array]:
+def split(x: Array) -> tuple[Array, ...]:
     """The components ``x[..., i]`` of ``x`` by one ``jnp.split``, differentiated by JAX (reverse
-    mode transposes the split into a concatenation), for kernels whose own derivative rule is
-    written out: there the products of :func:`components` only cost forward mode. ``to_euler``
-    at 10^6 (this 2-core CPU, fresh processes): one ``jvp`` 5.1 against 21 ms (float32) and 20-22
-    against 40-43 ms (float64), the value and the gradient the same (7.2-7.8 ms, 18.8-20.0 ms
-    float32)."""
-    return list(_split(x))
-
-
-def _split(x: Array) -> tuple[Array, ...]:
+    mode transposes the split into a concatenation): :func:`components` off the CPU, and for
+    kernels whose own derivative rule is written out, where the products of :func:`components`
+    only cost forward mode. ``to_euler`` at 10^6 (this 2-core CPU, fresh processes): one ``jvp``
+    5.1 against 21 ms (float32) and 20-22 against 40-43 ms (float64), the value and the gradient
+    the same (7.2-7.8 ms, 18.8-20.0 ms float32)."""
     return tuple(c[..., 0] for c in jnp.split(x, x.shape[-1], axis=-1))
 
 
 @jax.custom_jvp
 def _components(x: Array) -> tuple[Array, ...]:
-    return _split(x)
+    return split(x)
 
 
 @_components.defjvp

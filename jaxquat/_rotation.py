@@ -150,7 +150,7 @@ def to_rotvec(q: Array, rescale: bool = False) -> Array:
     ``docs/benchmarks.md`` has the times against the row form it replaced.
 
     With ``rescale`` (the public :func:`jaxquat.to_rotvec`) the factor ``2 atan2(|v|, |w|) / |v|``
-    is stored together with ``q`` (:func:`_arrays.scalars_and_input`) and the assembly takes the
+    is stored together with ``q`` (one :func:`_arrays.scalars` barrier on both) and the assembly takes the
     components from ``q`` again: XLA otherwise kept the four scaled, sign-fixed components as
     arrays of their own until the end. At 10^6 (this 2-core CPU, fresh processes, minimum of 9
     runs, three processes each) the value took 2.4-2.5 against 3.5-11.4 ms in float32 and
@@ -168,7 +168,7 @@ def to_rotvec(q: Array, rescale: bool = False) -> Array:
     w, x, y, z = canonical(q)
     f2 = 2.0 * _safe.atan2_over_n(x * x + y * y + z * z, w)
     if rescale:
-        f2, q = _arrays.scalars_and_input(f2, q)
+        f2, q = _arrays.scalars(f2, q)  # q's copy is not identified with q: its components are taken again
         _, x, y, z = canonical(q)
     return _arrays.assemble(f2 * x, f2 * y, f2 * z)
 
