@@ -10,7 +10,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import ArrayLike, Float
 
-from .. import _checks, _quaternion, _rotation
+from .. import _arrays, _checks, _quaternion, _rotation
 
 __all__ = ["slerp", "squad", "squad_control_points", "squad_segment"]
 
@@ -29,7 +29,7 @@ def slerp(
     Assumes unit ``p`` and ``q``. ``p``, ``q`` and ``t`` broadcast over batch axes.
     """
     p, q, t = _checks.arguments(p=(p, "quaternion"), q=(q, "quaternion"), t=(t, "scalar"))
-    return _rotation.slerp(p, q, t)
+    return _arrays.compiled(_rotation.slerp, p, q, t)
 
 
 def _control_points(keys: Array) -> Array:

@@ -49,7 +49,7 @@ def multiply(p: Float[ArrayLike, "*#batch 4"], q: Float[ArrayLike, "*#batch 4"])
     not; batch axes broadcast.
     """
     p, q = _checks.arguments(p=(p, "quaternion"), q=(q, "quaternion"))
-    return _quaternion.multiply(p, q)
+    return _arrays.compiled(_quaternion.multiply, p, q)
 
 
 def conjugate(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
@@ -115,7 +115,7 @@ def exp(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     For a pure quaternion ``(0, phi u / 2)`` it is the unit quaternion of the
     rotation by ``phi`` about ``u``.
     """
-    return _exp(_checks.quat(q))
+    return _arrays.compiled(_exp, _checks.quat(q))
 
 
 def _log(q: Array) -> Array:
@@ -145,7 +145,7 @@ def log(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     unique and its derivative does not exist; there the result is
     ``(ln|q|, pi, 0, 0)`` (a valid logarithm). ``log(0)`` is ``-inf`` in the scalar part.
     """
-    return _log(_checks.quat(q))
+    return _arrays.compiled(_log, _checks.quat(q))
 
 
 def power(q: Float[ArrayLike, "*#batch 4"], t: Float[ArrayLike, "*#batch"] | float) -> Float[Array, "*batch 4"]:
@@ -157,6 +157,10 @@ def power(q: Float[ArrayLike, "*#batch 4"], t: Float[ArrayLike, "*#batch"] | flo
     Smooth at the identity; not differentiable on the negative real axis (see :func:`log`).
     """
     q, t = _checks.arguments(q=(q, "quaternion"), t=(t, "scalar"))
+    return _arrays.compiled(_power, q, t)
+
+
+def _power(q: Array, t: Array) -> Array:
     return _exp(t[..., None] * _log(q))
 
 
@@ -215,7 +219,7 @@ def canonicalize(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     of ``x, y, z`` being positive, so the choice is deterministic everywhere.
     The map is piecewise ``+-identity``: its derivative is ``+-I``.
     """
-    return _quaternion.canonicalize(_checks.quat(q))
+    return _arrays.compiled(_quaternion.canonicalize, _checks.quat(q))
 
 
 def random(key: Array, shape: tuple[int, ...] | int = (), dtype: Any = None) -> Float[Array, "*shape 4"]:

@@ -65,7 +65,10 @@ def from_matrix(m: Float[ArrayLike, "*batch 3 3"], *, nearest: bool = False) -> 
     branch; the ``nearest=True`` result is smooth in every direction (its
     ``eigh`` derivative needs only the top eigenvalue to be simple).
     """
-    m = _checks.mat3(m, "m")
+    return _arrays.compiled(_from_matrix, _checks.mat3(m, "m"), nearest=bool(nearest))
+
+
+def _from_matrix(m: Array, nearest: bool) -> Array:
     return _rotation.top_eigenvector(_rotation.k_matrix(m)) if nearest else _rotation.from_matrix_shepperd(m)
 
 
@@ -80,7 +83,7 @@ def to_rotvec(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3"]:
     At exactly 180 degrees ``phi u`` and ``-phi u`` are the same rotation; the
     sign follows :func:`jaxquat.canonicalize`.
     """
-    return _rotation.to_rotvec(_checks.quat(q), rescale=True)
+    return _arrays.compiled(_rotation.to_rotvec, _checks.quat(q), rescale=True)
 
 
 def from_rotvec(r: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 4"]:
@@ -90,7 +93,7 @@ def from_rotvec(r: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 4"]:
     (Jacobian ``I/2`` on the vector part). Any ``|r|`` is accepted; angles beyond
     ``pi`` give ``w < 0``.
     """
-    return _rotation.from_rotvec(_checks.vec3(r, "r"))
+    return _arrays.compiled(_rotation.from_rotvec, _checks.vec3(r, "r"))
 
 
 def to_axis_angle(q: Float[ArrayLike, "*batch 4"]) -> tuple[Float[Array, "*batch 3"], Float[Array, "*batch"]]:
@@ -102,7 +105,11 @@ def to_axis_angle(q: Float[ArrayLike, "*batch 4"]) -> tuple[Float[Array, "*batch
     ``phi = 0``, with zero gradient for ``u`` and a zero subgradient for ``phi``
     (whose true derivative there does not exist: ``phi = 2|v|`` is a cone).
     """
-    q = _quaternion.canonicalize(_safe.rescaled(_checks.quat(q)))
+    return _arrays.compiled(_to_axis_angle, _checks.quat(q))
+
+
+def _to_axis_angle(q: Array) -> tuple[Array, Array]:
+    q = _quaternion.canonicalize(_safe.rescaled(q))
     w = q[..., 0]
     v = q[..., 1:]
     n = _safe.safe_norm(v)
@@ -123,6 +130,10 @@ def from_axis_angle(
     ``axis`` and ``angle`` broadcast over their batch axes.
     """
     axis, angle = _checks.arguments(axis=(axis, "vector"), angle=(angle, "scalar"))
+    return _arrays.compiled(_from_axis_angle, axis, angle)
+
+
+def _from_axis_angle(axis: Array, angle: Array) -> Array:
     nsq = _safe.norm_sq(axis)
     unit = axis / jnp.sqrt(jnp.where(nsq > 0, nsq, 1.0))[..., None]
     half = 0.5 * angle
@@ -138,7 +149,11 @@ def to_mrp(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3"]:
     ``|q| + w`` instead of ``1 + w`` makes it scale-invariant. Smooth everywhere
     except the 180-degree hemisphere switch.
     """
-    q = _quaternion.canonicalize(_safe.rescaled(_checks.quat(q)))
+    return _arrays.compiled(_to_mrp, _checks.quat(q))
+
+
+def _to_mrp(q: Array) -> Array:
+    q = _quaternion.canonicalize(_safe.rescaled(q))
     w = q[..., 0]
     n = jnp.sqrt(_safe.norm_sq(q))
     return q[..., 1:] / (n + w)[..., None]
@@ -149,7 +164,10 @@ def from_mrp(p: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 4"]:
 
     Any ``p`` is accepted (``|p| > 1`` is the shadow set, giving ``w < 0``). Smooth everywhere.
     """
-    p = _checks.vec3(p, "p")
+    return _arrays.compiled(_from_mrp, _checks.vec3(p, "p"))
+
+
+def _from_mrp(p: Array) -> Array:
     psq = _safe.norm_sq(p)
     denom = 1.0 + psq
     return _quaternion.scalar_vector((1.0 - psq) / denom, p, 2.0 / denom)

@@ -55,7 +55,10 @@ def triad(
     """
     names = ["b1", "b2", "r1", "r2"]
     vs = [_checks.vec3(v, n) for v, n in zip((b1, b2, r1, r2), names)]
-    b1, b2, r1, r2 = _checks.broadcast_batch(vs, names, [1, 1, 1, 1])
+    return _arrays.compiled(_triad, *_checks.broadcast_batch(vs, names, [1, 1, 1, 1]))
+
+
+def _triad(b1: Array, b2: Array, r1: Array, r2: Array) -> Array:
     m = _arrays.einsum("...ik,...jk->...ij", _frame(r1, r2), _frame(b1, b2))
     return _rotation.from_matrix_shepperd(m)
 
@@ -275,16 +278,22 @@ def align_vectors(
     zero) gives NaN for that element, under ``jit`` or not.
     """
     a, b, weights = _checks.vector_pairs(a, b, weights, ("a", "b"))
-    if weights is None:
-        weights = jnp.ones(a.shape[:-1], a.dtype)
-        bad = jnp.zeros(a.shape[:-2], bool)
-    else:
-        bad = ~_arrays.valid_weights(weights)
     if return_sensitivity and a.shape[-2] == 1:
         raise ValueError(
             "align_vectors(..., return_sensitivity=True) needs at least two vector pairs (n >= 2 in "
             f"(..., n, 3)): a single vector pair leaves the rotation about it undetermined, got shape {tuple(a.shape)}"
         )
+    if weights is None:
+        return _arrays.compiled(_align_vectors, a, b, return_sensitivity=return_sensitivity)
+    return _arrays.compiled(_align_vectors, a, b, weights, return_sensitivity=return_sensitivity)
+
+
+def _align_vectors(a: Array, b: Array, weights: Array | None = None, *, return_sensitivity: bool):
+    if weights is None:
+        weights = jnp.ones(a.shape[:-1], a.dtype)
+        bad = jnp.zeros(a.shape[:-2], bool)
+    else:
+        bad = ~_arrays.valid_weights(weights)
     if a.shape[-2] == 1:
         degenerate = (_safe.norm_sq(a[..., 0, :]) == 0) | (_safe.norm_sq(b[..., 0, :]) == 0)
         return _arrays.nan_where(bad | degenerate, _rotation.minimal_rotation(a[..., 0, :], b[..., 0, :]))

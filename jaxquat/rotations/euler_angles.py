@@ -45,8 +45,10 @@ def from_euler(angles: Float[ArrayLike, "*batch 3"], seq: str) -> Float[Array, "
     composition rule [T] eq. (24)). Matches ``scipy``'s ``Rotation.from_euler``
     up to the sign of ``q``. Smooth in the angles everywhere.
     """
-    seq = _checks.euler_seq(seq)
-    angles = _checks.vec3(angles, "angles")
+    return _arrays.compiled(_from_euler, _checks.vec3(angles, "angles"), seq=_checks.euler_seq(seq))
+
+
+def _from_euler(angles: Array, seq: str) -> Array:
     axes = [_AXIS[c] for c in seq.lower()]
     # In components (one split, three sincos, the product written out without its zero terms,
     # one assembly): at 10^6 (this 2-core CPU, minimum of 7 x 3 interleaved runs, float32 /
@@ -181,7 +183,10 @@ def to_euler(q: Float[ArrayLike, "*batch 4"], seq: str) -> Float[Array, "*batch 
     branch (third angle constant, its gradient 0; the middle angle gets the zero
     subgradient of ``hypot`` at the origin). Everywhere else gradients are exact.
     """
-    seq = _checks.euler_seq(seq)
+    return _arrays.compiled(_to_euler, _checks.quat(q), seq=_checks.euler_seq(seq))
+
+
+def _to_euler(q: Array, seq: str) -> Array:
     # In components (one split, the scale taken on the components, one stack) with a closed-form
     # JVP (_angles): at 10^6 (this 2-core CPU, three fresh processes each, minimum of 9 runs in
     # each) the float32 value took 7.5-7.8 ms against 17.1-19.5 ms (one process in three 16.6 ms:
@@ -189,7 +194,7 @@ def to_euler(q: Float[ArrayLike, "*batch 4"], seq: str) -> Float[Array, "*batch 
     # float64 34-39 against 36-38 ms and 42-43 against 45-47 ms (docs/benchmarks.md). A plain
     # split (_arrays.split), since the rule already makes the transpose element-wise: with the
     # products of _arrays.components one jvp took 21 against 5.1 ms (float32).
-    w, x, y, z = _safe.rescaled_components(*_arrays.split(_checks.quat(q)))
+    w, x, y, z = _safe.rescaled_components(*_arrays.split(q))
     first, middle, third = _angles(seq, w, x, y, z)
     if not _plan(seq).symmetric:
         middle = middle - 0.5 * jnp.pi

@@ -28,7 +28,11 @@ def angle(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch"]:
     cone ``2|v|``); there the gradient returned is the zero subgradient. At 180
     degrees (``w = 0``) the gradient with respect to ``w`` is 0 (a maximum).
     """
-    return _angle(_safe.rescaled(_checks.quat(q)))
+    return _arrays.compiled(_rescaled_angle, _checks.quat(q))
+
+
+def _rescaled_angle(q: Array) -> Array:
+    return _angle(_safe.rescaled(q))
 
 
 def angle_between(p: Float[ArrayLike, "*#batch 4"], q: Float[ArrayLike, "*#batch 4"]) -> Float[Array, "*batch"]:
@@ -37,6 +41,10 @@ def angle_between(p: Float[ArrayLike, "*#batch 4"], q: Float[ArrayLike, "*#batch
     Symmetric in ``p`` and ``q`` and invariant to the sign of either. Assumes unit inputs.
     """
     p, q = _checks.arguments(p=(p, "quaternion"), q=(q, "quaternion"))
+    return _arrays.compiled(_angle_between, p, q)
+
+
+def _angle_between(p: Array, q: Array) -> Array:
     return _angle(_quaternion.multiply(_quaternion.conjugate(p), q))
 
 
@@ -64,8 +72,16 @@ def mean(
         )
     _checks.nonempty(q, "q", -2, "rotation to average (n >= 1 in (..., n, 4))")
     if weights is None:
-        return _rotation.top_eigenvector(_arrays.einsum("...ni,...nj->...ij", q, q))
+        return _arrays.compiled(_mean, q)
     weights = _checks.weights(_checks.per_item(weights, "weights", q, "q"))
     q, weights = _checks.arguments(q=(q, "quaternions"), weights=(weights, "scalars"))
+    return _arrays.compiled(_weighted_mean, q, weights)
+
+
+def _mean(q: Array) -> Array:
+    return _rotation.top_eigenvector(_arrays.einsum("...ni,...nj->...ij", q, q))
+
+
+def _weighted_mean(q: Array, weights: Array) -> Array:
     m = _arrays.einsum("...n,...ni,...nj->...ij", weights, q, q)
     return _arrays.nan_where(~_arrays.valid_weights(weights), _rotation.top_eigenvector(m))
