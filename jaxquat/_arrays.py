@@ -208,6 +208,7 @@ def compiled(fn, *arrays: Array, **static):
     (float32, 100 rotations, a fresh interpreter per function, this 2-core CPU, XLA's
     defaults, 24 public functions from ``multiply`` to ``right_jacobian_inverse``): the first
     call 0.22-1.29 s as 6-55 single-operation compilations, 0.03-0.31 s as one program; a
-    repeated call 1.5-5.5 ms against 0.14-0.45 ms. Inside a user's ``jit``, ``vmap`` or ``grad`` the call is traced into the
-    enclosing program (XLA inlines it): the same operations, so the same values."""
+    repeated call 1.5-5.5 ms against 0.14-0.45 ms (``docs/benchmarks.md``). Inside a user's
+    ``jit``, ``vmap`` or ``grad`` the call is traced into the enclosing program (XLA inlines
+    it): the same operations, so the same values."""
     return _jit(fn, tuple(sorted(static)))(*arrays, **static)

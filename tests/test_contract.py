@@ -773,3 +773,61 @@ def test_every_matrix_product_asks_for_full_precision():
     }
     bad = {k: v for k, v in default.items() if v}
     assert not bad, f"products at the default precision (name: count): {bad}"
+
+
+EAGER_ONE_PROGRAM = {
+    "multiply": lambda x: jq.multiply(x["q"], x["p"]),
+    "from_matrix": lambda x: jq.from_matrix(x["m"]),
+    "from_matrix_nearest": lambda x: jq.from_matrix(x["m"], nearest=True),
+    "to_rotvec": lambda x: jq.to_rotvec(x["q"]),
+    "from_rotvec": lambda x: jq.from_rotvec(x["v"]),
+    "to_euler": lambda x: jq.to_euler(x["q"], "ZXZ"),
+    "from_euler": lambda x: jq.from_euler(x["v"], "xyz"),
+    "slerp": lambda x: jq.slerp(x["q"], x["p"], x["t"]),
+    "exp": lambda x: jq.exp(x["q"]),
+    "log": lambda x: jq.log(x["q"]),
+    "power": lambda x: jq.power(x["q"], x["t"]),
+    "canonicalize": lambda x: jq.canonicalize(x["q"]),
+    "angle": lambda x: jq.angle(x["q"]),
+    "angle_between": lambda x: jq.angle_between(x["q"], x["p"]),
+    "to_axis_angle": lambda x: jq.to_axis_angle(x["q"]),
+    "from_axis_angle": lambda x: jq.from_axis_angle(x["v"], x["t"]),
+    "to_mrp": lambda x: jq.to_mrp(x["q"]),
+    "from_mrp": lambda x: jq.from_mrp(x["v"]),
+    "mean": lambda x: jq.mean(x["q"]),
+    "mean_weighted": lambda x: jq.mean(x["q"], x["t"]),
+    "align_vectors": lambda x: jq.align_vectors(x["v"], x["u"]),
+    "triad": lambda x: jq.triad(x["v"], x["u"], x["w"], x["r"]),
+    "plus": lambda x: jq.plus(x["q"], x["v"], "space"),
+    "minus": lambda x: jq.minus(x["q"], x["p"]),
+    "right_jacobian": lambda x: jq.right_jacobian(x["v"]),
+    "right_jacobian_inverse": lambda x: jq.right_jacobian_inverse(x["v"]),
+    "left_jacobian": lambda x: jq.left_jacobian(x["v"]),
+    "left_jacobian_inverse": lambda x: jq.left_jacobian_inverse(x["v"]),
+}
+
+
+@pytest.mark.parametrize("name", sorted(EAGER_ONE_PROGRAM))
+def test_an_eager_call_lowers_at_most_one_program(name):
+    """Outside ``jit`` a public rotation function runs its body as one compiled program
+    (``_arrays.compiled``), not as one compilation per operation (6 to 55 of them before, each
+    a notebook user waited for). Counted by JAX's lowering events on a batch size (23) that no
+    other test uses, the inputs made beforehand; at most one, so a program already compiled
+    for this shape in the same worker passes as well."""
+    rng = np.random.default_rng(23)
+    x = {k: jnp.asarray(_unit(rng.normal(size=(23, 4))), DTYPE) for k in "qp"}
+    x |= {k: jnp.asarray(rng.normal(size=(23, 3)), DTYPE) for k in "vuwr"}
+    x |= {"m": jnp.asarray(rng.normal(size=(23, 3, 3)), DTYPE), "t": jnp.asarray(rng.uniform(0.1, 0.9, 23), DTYPE)}
+    jax.block_until_ready(x)
+    lowered = []
+
+    def listener(event, seconds, **kwargs):
+        if event.endswith("jaxpr_to_mlir_module_duration"):
+            lowered.append(kwargs.get("fun_name"))
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        jax.block_until_ready(EAGER_ONE_PROGRAM[name](x))
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    assert len(lowered) <= 1, f"{name}: {len(lowered)} programs lowered: {lowered}"

@@ -102,12 +102,20 @@ def left_jacobian(phi: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3
 
     Maps exponential-coordinate rates to space angular velocity: ``w_s = J_l(phi) phi'``.
     """
-    return _arrays.compiled(_rotation.right_jacobian, -_checks.vec3(phi, "phi"))
+    return _arrays.compiled(_left_jacobian, _checks.vec3(phi, "phi"))
 
 
 def left_jacobian_inverse(phi: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     """``J_l(phi)^-1 = J_r(-phi)^-1 = I - hat(phi)/2 + (1/t^2 - cot(t/2)/(2 t)) hat(phi)^2``."""
-    return _arrays.compiled(_rotation.right_jacobian_inverse, -_checks.vec3(phi, "phi"))
+    return _arrays.compiled(_left_jacobian_inverse, _checks.vec3(phi, "phi"))
+
+
+def _left_jacobian(phi: Array) -> Array:
+    return _rotation.right_jacobian(-phi)
+
+
+def _left_jacobian_inverse(phi: Array) -> Array:
+    return _rotation.right_jacobian_inverse(-phi)
 
 
 def adjoint(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
