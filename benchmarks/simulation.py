@@ -271,12 +271,8 @@ def first_closed_form(repeats=3):
         "jax.block_until_ready((q0, w0, inertia)); spent.clear(); t0 = time.perf_counter(); "
         "jax.block_until_ready(jq.simulate(q0, w0, inertia, ts).q); print(time.perf_counter() - t0, sum(spent))"
     )
-    runs = [
-        [float(x) for x in subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-         .stdout.split()]
-        for _ in range(repeats)
-    ]  # fmt: skip
-    return min(runs)
+    runs = _fresh_runs(code, repeats)
+    return runs[np.argmin(runs[:, 0])]
 
 
 def import_times(repeats=5):
@@ -288,12 +284,16 @@ def import_times(repeats=5):
         "import jaxquat as jq; t2 = time.perf_counter(); jq.multiply; t3 = time.perf_counter(); "
         "jq.simulate; t4 = time.perf_counter(); print(t1 - t0, t2 - t1, t3 - t2, t4 - t3)"
     )
+    return np.min(_fresh_runs(code, repeats), axis=0)
+
+
+def _fresh_runs(code: str, repeats: int) -> np.ndarray:
+    """The numbers ``code`` prints, one row per fresh interpreter (``repeats`` of them)."""
     runs = [
-        [float(x) for x in subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-         .stdout.split()]
+        subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
         for _ in range(repeats)
-    ]  # fmt: skip
-    return np.min(np.asarray(runs), axis=0)
+    ]
+    return np.asarray(runs, float)
 
 
 def markdown(rows, grad_rows, compiled, imported, closed_form):

@@ -194,8 +194,12 @@ def nan_where(bad: Array, q: Array) -> Array:
 
 
 @functools.cache
-def _jit(fn, static_argnames: tuple[str, ...]):
-    return jax.jit(fn, static_argnames=static_argnames)
+def _jit(fn, static_argnames: tuple[str, ...], cpu: bool):
+    @functools.wraps(fn)
+    def body(*args, **kwargs):  # one function per backend choice: JAX keys its traces by the function
+        return fn(*args, **kwargs)
+
+    return jax.jit(body, static_argnames=static_argnames)
 
 
 def compiled(fn, *arrays: Array, **static):
@@ -210,5 +214,6 @@ def compiled(fn, *arrays: Array, **static):
     call 0.22-1.29 s as 6-55 single-operation compilations, 0.03-0.31 s as one program; a
     repeated call 1.5-5.5 ms against 0.14-0.45 ms (``docs/benchmarks.md``). Inside a user's
     ``jit``, ``vmap`` or ``grad`` the call is traced into the enclosing program (XLA inlines
-    it): the same operations, so the same values."""
-    return _jit(fn, tuple(sorted(static)))(*arrays, **static)
+    it): the same operations, so the same values. The bodies choose their kernels by the backend
+    at trace time (:func:`jaxquat._trig.on_cpu`), so the compiled function is kept per choice."""
+    return _jit(fn, tuple(sorted(static)), _trig.on_cpu(lambda: True, lambda: False))(*arrays, **static)
