@@ -1,8 +1,9 @@
 """Small fixed-size array kernels: the dot product over a minor axis of 3 or 4, the 3x3
 matrix-vector product and the symmetric 3x3 solve, the cross-product matrix and its inverse,
-constants broadcast to a batch, and scalars stored before they are broadcast.
+constants broadcast to a batch, and scalars stored before they are broadcast; and
+:func:`compiled`, through which the public functions run their bodies as one compiled program.
 
-Each is written out per component because XLA on CPU compiles a reduction over a minor axis
+The kernels are written out per component because XLA on CPU compiles a reduction over a minor axis
 this short into a slow loop, while the written-out form fuses into the surrounding
 expression (measured figures in each docstring). Plain names: the module is private to the
 package (see :mod:`jaxquat._quaternion`).

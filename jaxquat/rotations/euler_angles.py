@@ -45,7 +45,8 @@ def from_euler(angles: Float[ArrayLike, "*batch 3"], seq: str) -> Float[Array, "
     composition rule [T] eq. (24)). Matches ``scipy``'s ``Rotation.from_euler``
     up to the sign of ``q``. Smooth in the angles everywhere.
     """
-    return _arrays.compiled(_from_euler, _checks.vec3(angles, "angles"), seq=_checks.euler_seq(seq))
+    seq = _checks.euler_seq(seq)
+    return _arrays.compiled(_from_euler, _checks.vec3(angles, "angles"), seq=seq)
 
 
 def _from_euler(angles: Array, seq: str) -> Array:
@@ -183,7 +184,8 @@ def to_euler(q: Float[ArrayLike, "*batch 4"], seq: str) -> Float[Array, "*batch 
     branch (third angle constant, its gradient 0; the middle angle gets the zero
     subgradient of ``hypot`` at the origin). Everywhere else gradients are exact.
     """
-    return _arrays.compiled(_to_euler, _checks.quat(q), seq=_checks.euler_seq(seq))
+    seq = _checks.euler_seq(seq)
+    return _arrays.compiled(_to_euler, _checks.quat(q), seq=seq)
 
 
 def _to_euler(q: Array, seq: str) -> Array:
