@@ -804,16 +804,21 @@ EAGER_ONE_PROGRAM = {
     "right_jacobian_inverse": lambda x: jq.right_jacobian_inverse(x["v"]),
     "left_jacobian": lambda x: jq.left_jacobian(x["v"]),
     "left_jacobian_inverse": lambda x: jq.left_jacobian_inverse(x["v"]),
+    "qdot_from_omega": lambda x: jq.qdot_from_omega(x["q"], x["v"], "space"),
+    "omega_from_qdot": lambda x: jq.omega_from_qdot(x["q"], x["p"]),
+    "qddot_from_alpha": lambda x: jq.qddot_from_alpha(x["q"], x["p"], x["v"]),
+    "alpha_from_qddot": lambda x: jq.alpha_from_qddot(x["q"], x["p"], x["q"], "space"),
 }
 
 
 @pytest.mark.parametrize("name", sorted(EAGER_ONE_PROGRAM))
 def test_an_eager_call_lowers_at_most_one_program(name):
-    """Outside ``jit`` a public rotation function runs its body as one compiled program
-    (``_arrays.compiled``), not as one compilation per operation (6 to 55 of them before, each
-    a notebook user waited for). Counted by JAX's lowering events on a batch size (23) that no
-    other test uses, the inputs made beforehand; at most one, so a program already compiled
-    for this shape in the same worker passes as well."""
+    """Outside ``jit`` a public rotation function (and each of the kinematics' four rate
+    relations) runs its body as one compiled program (``_arrays.compiled``), not as one
+    compilation per operation (6 to 55 of them before, each a notebook user waited for).
+    Counted by JAX's lowering events on a batch size (23) that no other test uses, the inputs
+    made beforehand; at most one, so a program already compiled for this shape in the same
+    worker passes as well."""
     rng = np.random.default_rng(23)
     x = {k: jnp.asarray(_unit(rng.normal(size=(23, 4))), DTYPE) for k in "qp"}
     x |= {k: jnp.asarray(rng.normal(size=(23, 3)), DTYPE) for k in "vuwr"}

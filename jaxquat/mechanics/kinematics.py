@@ -79,7 +79,7 @@ def qdot_from_omega(
     """
     frame = _checks.frame(frame)
     q, omega = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"))
-    return _rates.qdot_from_omega(q, omega, frame)
+    return _arrays.compiled(_rates.qdot_from_omega, q, omega, frame=frame)
 
 
 def omega_from_qdot(
@@ -98,7 +98,7 @@ def omega_from_qdot(
     """
     frame = _checks.frame(frame)
     q, qdot = _checks.arguments(q=(q, "quaternion"), qdot=(qdot, "quaternion"))
-    return _rates.omega_from_qdot(q, qdot, frame)
+    return _arrays.compiled(_rates.omega_from_qdot, q, qdot, frame=frame)
 
 
 def qddot_from_alpha(
@@ -123,7 +123,7 @@ def qddot_from_alpha(
     """
     frame = _checks.frame(frame)
     q, qdot, alpha = _checks.arguments(q=(q, "quaternion"), qdot=(qdot, "quaternion"), alpha=(alpha, "vector"))
-    return _rates.qddot_from_alpha(q, qdot, alpha, frame)
+    return _arrays.compiled(_rates.qddot_from_alpha, q, qdot, alpha, frame=frame)
 
 
 def alpha_from_qddot(
@@ -146,7 +146,7 @@ def alpha_from_qddot(
     """
     frame = _checks.frame(frame)
     q, qdot, qddot = _checks.arguments(q=(q, "quaternion"), qdot=(qdot, "quaternion"), qddot=(qddot, "quaternion"))
-    return _rates.alpha_from_qddot(q, qdot, qddot, frame)
+    return _arrays.compiled(_rates.alpha_from_qddot, q, qdot, qddot, frame=frame)
 
 
 def matrix_rate(
