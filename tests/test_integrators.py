@@ -498,8 +498,9 @@ def test_gradient_of_a_learned_torque_under_xla_defaults_matches_finite_differen
     ``diffeqsolve``, and a PD law on the scan path, against a central difference along a random
     direction of the weights or gains (measured 6.2e-9 and 7.1e-9 relative on the two MLP paths,
     2.1e-9 for the PD law, the central difference's own error; the bound 1e-6), the differences
-    from the values of the same compiled ``value_and_grad`` (a separate eager cost compiled one
-    more program per path: 17.8 s against 16.1-16.6 s for the script). The 240 s limit of the
+    from the values of the same compiled ``value_and_grad`` (eager costs for the differences, one
+    for the MLP shared by both paths and one for the PD law, compiled programs of their own: 17.8 s
+    against 16.1-16.6 s for the script). The 240 s limit of the
     subprocess catches the slow kernels (about 750 s and 480 s)."""
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_ENABLE_X64")}
     out = subprocess.run(
