@@ -808,21 +808,28 @@ EAGER_ONE_PROGRAM = {
     "omega_from_qdot": lambda x: jq.omega_from_qdot(x["q"], x["p"]),
     "qddot_from_alpha": lambda x: jq.qddot_from_alpha(x["q"], x["p"], x["v"]),
     "alpha_from_qddot": lambda x: jq.alpha_from_qddot(x["q"], x["p"], x["q"], "space"),
+    "angular_momentum": lambda x: jq.angular_momentum(x["q"], x["v"], x["i"], "space"),
+    "kinetic_energy": lambda x: jq.kinetic_energy(x["q"], x["v"], x["i"]),
+    "angular_acceleration": lambda x: jq.angular_acceleration(x["q"], x["v"], x["i"], x["u"]),
+    "inverse_dynamics": lambda x: jq.inverse_dynamics(x["q"], x["v"], x["u"], x["i"]),
+    "euler_parameter_acceleration": lambda x: jq.euler_parameter_acceleration(x["q"], x["p"], x["i"], x["u"]),
+    "euler_parameter_torque": lambda x: jq.euler_parameter_torque(x["q"], x["p"], x["q"], x["i"]),
 }
 
 
 @pytest.mark.parametrize("name", sorted(EAGER_ONE_PROGRAM))
 def test_an_eager_call_lowers_at_most_one_program(name):
     """Outside ``jit`` a public rotation function (and each of the kinematics' four rate
-    relations) runs its body as one compiled program (``_arrays.compiled``), not as one
-    compilation per operation (6 to 55 of them before, each a notebook user waited for).
-    Counted by JAX's lowering events on a batch size (23) that no other test uses, the inputs
-    made beforehand; at most one, so a program already compiled for this shape in the same
-    worker passes as well."""
+    relations and six of the dynamics functions) runs its body as one compiled program
+    (``_arrays.compiled``), not as one compilation per operation (6 to 55 of them before, each
+    a notebook user waited for). Counted by JAX's lowering events on a batch size (23) that no
+    other test uses, the inputs made beforehand; at most one, so a program already compiled
+    for this shape in the same worker passes as well."""
     rng = np.random.default_rng(23)
     x = {k: jnp.asarray(_unit(rng.normal(size=(23, 4))), DTYPE) for k in "qp"}
     x |= {k: jnp.asarray(rng.normal(size=(23, 3)), DTYPE) for k in "vuwr"}
     x |= {"m": jnp.asarray(rng.normal(size=(23, 3, 3)), DTYPE), "t": jnp.asarray(rng.uniform(0.1, 0.9, 23), DTYPE)}
+    x["i"] = jnp.asarray(random_inertias(23, 23), DTYPE)
     jax.block_until_ready(x)
     lowered = []
 

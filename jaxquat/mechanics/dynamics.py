@@ -65,6 +65,10 @@ def angular_momentum(
     q, omega, inertia = _checks.arguments(
         q=(q, "quaternion"), omega=(omega, "vector"), inertia=(validated(inertia), "inertia")
     )
+    return _arrays.compiled(_angular_momentum, q, omega, inertia, frame=frame)
+
+
+def _angular_momentum(q: Array, omega: Array, inertia: Array, frame: str) -> Array:
     h = _arrays.matvec(inertia, _rates.to_body(q, omega, frame))
     return _rates.from_body(q, h, frame)
 
@@ -84,6 +88,10 @@ def kinetic_energy(
     q, omega, inertia = _checks.arguments(
         q=(q, "quaternion"), omega=(omega, "vector"), inertia=(validated(inertia), "inertia")
     )
+    return _arrays.compiled(_kinetic_energy, q, omega, inertia, frame=frame)
+
+
+def _kinetic_energy(q: Array, omega: Array, inertia: Array, frame: str) -> Array:
     w = _rates.to_body(q, omega, frame)
     return _rates.kinetic_energy(w, _arrays.matvec(inertia, w))
 
@@ -107,6 +115,10 @@ def angular_acceleration(
     q, omega, torque, inertia = _checks.arguments(
         q=(q, "quaternion"), omega=(omega, "vector"), torque=(torque, "vector"), inertia=(validated(inertia), "inertia")
     )
+    return _arrays.compiled(_angular_acceleration, q, omega, torque, inertia, frame=frame)
+
+
+def _angular_acceleration(q: Array, omega: Array, torque: Array, inertia: Array, frame: str) -> Array:
     w = _rates.to_body(q, omega, frame)
     m = _rates.to_body(q, torque, frame)
     return _rates.from_body(q, _rates.euler_body(inertia, w, m), frame)
@@ -125,6 +137,10 @@ def inverse_dynamics(
     q, omega, alpha, inertia = _checks.arguments(
         q=(q, "quaternion"), omega=(omega, "vector"), alpha=(alpha, "vector"), inertia=(validated(inertia), "inertia")
     )
+    return _arrays.compiled(_inverse_dynamics, q, omega, alpha, inertia, frame=frame)
+
+
+def _inverse_dynamics(q: Array, omega: Array, alpha: Array, inertia: Array, frame: str) -> Array:
     w = _rates.to_body(q, omega, frame)
     a = _rates.to_body(q, alpha, frame)
     return _rates.from_body(q, _euler_torque_body(inertia, w, a), frame)
@@ -162,6 +178,10 @@ def euler_parameter_acceleration(
         torque=(torque, "vector"),
         inertia=(validated(inertia), "inertia"),
     )
+    return _arrays.compiled(_euler_parameter_acceleration, q, qdot, torque, inertia, frame=frame)
+
+
+def _euler_parameter_acceleration(q: Array, qdot: Array, torque: Array, inertia: Array, frame: str) -> Array:
     w = _rates.omega_from_qdot(q, qdot, "body")
     a = _rates.euler_body(inertia, w, _rates.to_body(q, torque, frame))
     return _rates.qddot_from_alpha(q, qdot, a, "body")
@@ -188,6 +208,10 @@ def euler_parameter_torque(
         qddot=(qddot, "quaternion"),
         inertia=(validated(inertia), "inertia"),
     )
+    return _arrays.compiled(_euler_parameter_torque, q, qdot, qddot, inertia, frame=frame)
+
+
+def _euler_parameter_torque(q: Array, qdot: Array, qddot: Array, inertia: Array, frame: str) -> Array:
     w = _rates.omega_from_qdot(q, qdot, "body")
     a = _rates.alpha_from_qddot(q, qdot, qddot, "body")
     return _rates.from_body(q, _euler_torque_body(inertia, w, a), frame)
