@@ -573,6 +573,22 @@ def test_default_torque_free_simulate_is_the_closed_form_at_every_saved_time():
     assert_close(direct.omega, stepped.omega, tol=tol, what="rates")
 
 
+def test_default_torque_free_simulate_forms_each_body_once_for_all_its_saved_times():
+    """The closed-form path forms each body's part of the solution once and evaluates it at all
+    its saved times; the result is euler_poinsot evaluated element by element over the broadcast
+    (body, time) batch, to rounding (measured 5.3e-15 / 3.0e-6: two compiled programs), for six
+    bodies with different states and times starting before zero."""
+    q0 = jnp.asarray(jq.random(jax.random.PRNGKey(3), (2, 3)), DTYPE)
+    w0 = jnp.asarray(np.random.default_rng(3).normal(size=(2, 3, 3)), DTYPE)
+    ts = jnp.linspace(-5.0, 20.0, 9, dtype=DTYPE)
+    moments = jnp.asarray([1.0, 2.0, 3.0], DTYPE)
+    direct = jq.simulate(q0, w0, jnp.diag(moments), ts)
+    q, w = jq.euler_poinsot(q0[..., None, :], w0[..., None, :], moments, ts - ts[0])
+    tol = 1e-13 if X64 else 2e-5
+    assert_close(direct.q, q, tol=tol, what="attitudes")
+    assert_close(direct.omega, w, tol=tol, what="rates")
+
+
 def test_default_torque_free_simulate_keeps_unit_norm_over_many_saved_times():
     """Float32, 10^4 saved times: chained from each saved time to the next the norm drifted to 2.2e-4;
     evaluated from the initial state it stays at rounding level."""

@@ -355,17 +355,21 @@ def _exact_simulate(q0, omega0, inertia, ts, principal: bool) -> Simulation:
     No ``diffeqsolve``: each saved state is :func:`jaxquat.euler_poinsot` of ``(q0, omega0)``
     over ``ts[i] - ts[0]``, so rounding does not accumulate from one saved time to the next
     (float32, 10^4 saved times: ``| |q| - 1 |`` 2.2e-4 when chained, rounding level here), and
-    forward and reverse mode both work (no ``custom_vjp`` from diffrax's adjoint). Compiled as one
-    program (an eager first call at 11 saved times took 6.0 s as single operations, 3.0 s
+    forward and reverse mode both work (no ``custom_vjp`` from diffrax's adjoint). Each body's
+    part of the solution is formed once for all its saved times (:func:`propagate` with a time
+    axis): 1000 bodies x 101 saved times on this 2-core CPU, a call 41-44 ms against 96-99 ms when
+    it was formed at every time (float32; float64 65-69 against 207 ms), its gradient 163-182 ms
+    against 467-524 ms (float64 296 against 1042 ms), a ``jvp`` 135-149 against 245-252 ms. Compiled
+    as one program (an eager first call at 11 saved times took 6.0 s as single operations, 3.0 s
     compiled; a repeated call 0.77 s and 5 ms)."""
     if principal:  # rotate to principal axes and back
         moments, q_axes, r, q0, omega0 = _to_principal(inertia, q0, omega0)
     else:
         moments = jnp.diagonal(inertia, axis1=-2, axis2=-1)
-    batch = q0.shape[:-1] + ts.shape
+    bodies = jnp.broadcast_shapes(q0.shape[:-1], omega0.shape[:-1], moments.shape[:-1])
     qs, ws = propagate(
-        *(jnp.broadcast_to(x[..., None, :], batch + (x.shape[-1],)) for x in (q0, omega0, moments)),
-        jnp.broadcast_to(ts - ts[0], batch),
+        *(jnp.broadcast_to(x, bodies + x.shape[-1:]) for x in (q0, omega0, moments)),
+        jnp.broadcast_to(ts - ts[0], bodies + ts.shape),
     )
     if principal:  # the time axis is last among the batch axes here
         qs, ws = _from_principal(qs, ws, q_axes[..., None, :], r[..., None, :, :])

@@ -7,7 +7,7 @@ functions follow :mod:`scipy.special`'s names and parameter convention
 (parameter ``m = k**2``, amplitude ``phi``), work element-wise over any batch
 shape, under ``jit``/``vmap`` and both modes of autodiff, in float32 and float64.
 
-Algorithms (fixed iteration counts, so they trace to straight-line code):
+Algorithms (fixed iteration counts: ``lax`` loops whose trip count is known when compiling):
 
 * :func:`ellipj` and :func:`ellipk`: the arithmetic-geometric mean (AGM) and the
   descending Landen recurrence (Abramowitz and Stegun 16.4 and 17.6). The
@@ -15,7 +15,10 @@ Algorithms (fixed iteration counts, so they trace to straight-line code):
   is smooth in ``m`` at ``m = 0`` (where ``sqrt(m)`` is not).
 * :func:`elliprf` and :func:`elliprj`: Carlson's duplication theorem with the
   fifth-order series of Carlson (1995), "Numerical computation of real or
-  complex elliptic integrals", Numer. Algorithms 10.
+  complex elliptic integrals", Numer. Algorithms 10. Both integrals move ``x, y, z`` by the same
+  step, so where both are needed of the same arguments (the integral of the third kind)
+  :func:`carlson` takes them from one loop. The AGM depends on ``m`` alone: :func:`am_given`
+  takes it formed once for many ``u`` (the torque-free flow's times).
 
 Iteration counts: the AGM converges quadratically once ``a`` and ``b`` are
 within a factor of two; starting from ``b_0 = sqrt(1 - m)`` as small as the
@@ -40,14 +43,14 @@ _AGM_STEPS = 20
 _DUPLICATION_STEPS = 16
 
 
-def _tiny(x: Array) -> Array:
+def tiny(x: Array) -> Array:
     return jnp.asarray(jnp.finfo(x.dtype).tiny, x.dtype)
 
 
 def agm(m: Array, mc: Array) -> tuple[Array, Array]:
     """``(a_n, b_n, c_n)`` for ``n = 1..N`` (stacked on a new leading axis) of the AGM of
     ``(1, sqrt(mc))``, and ``a_N``."""
-    b0 = jnp.sqrt(jnp.maximum(mc, _tiny(mc)))
+    b0 = jnp.sqrt(jnp.maximum(mc, tiny(mc)))
     first = ((1 + b0) / 2, jnp.sqrt(b0), m / (2 * (1 + b0)))  # c_1 = (1 - b0)/2 without cancellation
 
     def step(abc, _):
@@ -87,9 +90,16 @@ def sn_cn_dn(phi: Array, m: Array, mc: Array) -> tuple[Array, Array, Array]:
     return sn, cn, jnp.sqrt(mc + m * cn * cn)  # dn = sqrt(1 - m sn^2), no cancellation near m = 1
 
 
-@jax.custom_jvp
 def am(u: Array, m: Array, mc: Array) -> Array:
     """The unwrapped amplitude ``am(u | m)``; ``mc = 1 - m`` given separately for accuracy near ``m = 1``.
+    (:func:`am_given` with the AGM of ``m`` formed here.)"""
+    return am_given(u, m, mc, *lax.stop_gradient(agm(m, mc)))
+
+
+@jax.custom_jvp
+def am_given(u: Array, m: Array, mc: Array, steps: Array, a_last: Array) -> Array:
+    """The unwrapped amplitude ``am(u | m)`` from the AGM ``(steps, a_last) = agm(m, mc)`` of its
+    parameter, formed once for many ``u`` (the torque-free flow's saved times share one per body).
 
     Differentiating the AGM/Landen loop loses the derivative in ``m`` as ``m -> 1``
     (it differentiates ``sqrt(1 - m)``, whose singularity the exact derivative does not
@@ -98,26 +108,25 @@ def am(u: Array, m: Array, mc: Array) -> Array:
     (``|r| <= pi/2``), ``F_m = 2 j K'(m) + sin^3 r R_D(cos^2 r, 1, dn^2) / 6`` and
     ``K'(m) = R_D(0, 1, 1 - m) / 6``. The second term follows from the Carlson form of
     ``E`` (DLMF 19.25.10), which cancels the ``1 / (m (1 - m))`` of the textbook formula
-    exactly, so it is regular at ``m = 1`` (and at ``m = 0``). The tangent of ``mc``
-    is not used: callers pass ``mc = 1 - m`` analytically.
+    exactly, so it is regular at ``m = 1`` (and at ``m = 0``). The tangents of ``mc`` and of
+    the AGM are not used: callers pass ``mc = 1 - m`` analytically and the AGM of ``m``.
     """
-    steps, a_last = agm(m, mc)
     return amplitude(u, steps, a_last)
 
 
-@am.defjvp
+@am_given.defjvp
 def _am_jvp(primals, tangents):
-    u, m, mc = primals
-    du, dm, _ = tangents
-    phi = am(u, m, mc)
+    u, m, mc, *agm_of_m = primals
+    du, dm, *_ = tangents
+    phi = am_given(u, m, mc, *agm_of_m)
     j = jnp.round(phi / jnp.pi)
     s, c = _trig.sincos(phi - j * jnp.pi)
     dn = jnp.sqrt(jnp.maximum(mc + m * c * c, 0.0))
     one = jnp.ones_like(phi)
     whole = j != 0
-    mc_safe = jnp.where(whole, jnp.maximum(mc, _tiny(mc)), one)
+    mc_safe = jnp.where(whole, jnp.maximum(mc, tiny(mc)), one)
     # R_D(x, y, z) = R_J(x, y, z, z); the partial and the complete one in one evaluation.
-    x = jnp.stack([c * c, _tiny(mc) * one])
+    x = jnp.stack([c * c, tiny(mc) * one])
     z = jnp.stack([dn * dn, mc_safe])
     rd = _rj(x, jnp.stack([one, one]), z, z)
     f_m = s * s * s * rd[0] / 6 + jnp.where(whole, 2 * j * rd[1] / 6, 0.0)
@@ -193,7 +202,11 @@ def rf(x: Array, y: Array, z: Array) -> Array:
         *_, lam = _duplicate(*xyz)
         return tuple((v + lam) / 4 for v in xyz)
 
-    x, y, z = lax.fori_loop(0, _DUPLICATION_STEPS, step, (x, y, z))
+    return _rf_series(*lax.fori_loop(0, _DUPLICATION_STEPS, step, (x, y, z)))
+
+
+def _rf_series(x: Array, y: Array, z: Array) -> Array:
+    """R_F from arguments the duplication has brought together (Carlson's fifth-order series)."""
     a = (x + y + z) / 3
     dx, dy = 1 - x / a, 1 - y / a
     dz = -(dx + dy)
@@ -216,7 +229,10 @@ def _rc_one(e: Array) -> Array:
     return jnp.where(small, series, direct)
 
 
-def _rj(x: Array, y: Array, z: Array, p: Array) -> Array:
+def carlson(x: Array, y: Array, z: Array, p: Array) -> tuple[Array, Array]:
+    """``(R_F(x, y, z), R_J(x, y, z, p))`` from one duplication loop: both integrals move
+    ``x, y, z`` by the same step, so R_F's series is evaluated on R_J's final arguments (one loop
+    instead of two where a caller needs both: the incomplete integral of the third kind)."""
     delta = (p - x) * (p - y) * (p - z)
 
     def step(_, carry):
@@ -237,7 +253,11 @@ def _rj(x: Array, y: Array, z: Array, p: Array) -> Array:
     e4 = (2 * dx * dy * dz + e2 * dp + 3 * dp**3) * dp
     e5 = dx * dy * dz * dp * dp
     series = 1 - 3 * e2 / 14 + e3 / 6 + 9 * e2 * e2 / 88 - 3 * e4 / 22 - 9 * e2 * e3 / 52 + 3 * e5 / 26
-    return 6 * total + scale * series / (a * jnp.sqrt(a))
+    return _rf_series(x, y, z), 6 * total + scale * series / (a * jnp.sqrt(a))
+
+
+def _rj(x: Array, y: Array, z: Array, p: Array) -> Array:
+    return carlson(x, y, z, p)[1]
 
 
 def elliprf(x: Float[ArrayLike, "*#batch"], y: Float[ArrayLike, "*#batch"], z: Float[ArrayLike, "*#batch"]) -> Array:
@@ -286,24 +306,37 @@ def incomplete(j: Array, s: Array, c: Array, m: Array, mc: Array, n: Array) -> t
     ``sin r`` and ``cos r`` rather than ``r`` keeps full relative precision in
     ``cos r`` near ``r = +-pi/2``, where ``1 - m sin^2 r`` is small as ``m -> 1`` and an
     angle would lose ``eps / cos r``. The ``k`` partial integrals and the complete ones
-    go through one ``R_F`` and one ``R_J`` evaluation; the complete ones are replaced
+    go through one Carlson evaluation (:func:`legendre`); the complete ones are replaced
     by a safe dummy for batch elements where every ``j`` is 0 (so that ``m = 1`` has
     finite derivatives).
     """
-    m, mc, n = m[None], mc[None], n[None]
-    s2, c2 = s * s, c * c
     whole = jnp.any(j != 0, axis=0, keepdims=True)
-    mc_full = jnp.where(whole, jnp.maximum(mc, _tiny(mc)), 1.0)
-    # Rows 0..k-1: the partial integrals at r; last row: the complete ones (sin r = 1,
-    # cos r = 0; x = tiny instead of 0 keeps sqrt's forward-mode derivative finite and
-    # changes R_F by O(sqrt(tiny)) ~ 1e-154).
-    x = jnp.concatenate([c2, jnp.full_like(c2[:1], _tiny(c2))])
-    y = jnp.concatenate([jnp.maximum(mc + m * c2, 0.0), mc_full])
-    p = jnp.concatenate([1 - n * s2, 1 - n])
-    r_f = rf(x, y, jnp.ones_like(x))
-    r_j = _rj(x, y, jnp.ones_like(x), p)
-    f_part = s * r_f[:-1]
-    pi_part = f_part + n / 3 * s * s2 * r_j[:-1]
-    f_full = r_f[-1:]
-    pi_full = f_full + n / 3 * r_j[-1:]
-    return 2 * j * f_full + f_part, 2 * j * pi_full + pi_part
+    m, mc, n = m[None], mc[None], n[None]
+    # Rows 0..k-1: the partial integrals at r; last row: the complete ones.
+    x = jnp.concatenate([c * c, jnp.broadcast_to(tiny(c), c[:1].shape)])
+    y = jnp.concatenate([partial_y(c, m, mc), jnp.broadcast_to(complete_y(mc, whole), c[:1].shape)])
+    f, pi = legendre(jnp.concatenate([s, jnp.ones_like(s[:1])]), x, y, n)
+    return 2 * j * f[-1:] + f[:-1], 2 * j * pi[-1:] + pi[:-1]
+
+
+def legendre(s: Array, x: Array, y: Array, n: Array) -> tuple[Array, Array]:
+    """``F(r | m) = s R_F(x, y, 1)`` and ``Pi(n; r | m) = F + n/3 s^3 R_J(x, y, 1, 1 - n s^2)``
+    for ``|r| <= pi/2``, ``s = sin r``, ``x = cos^2 r`` and ``y = 1 - m sin^2 r`` (one :func:`carlson`
+    evaluation). For the partial integrals ``y`` is :func:`partial_y`; for the complete ones
+    (``s = 1``) ``x = tiny`` and ``y`` is :func:`complete_y`."""
+    r_f, r_j = carlson(x, y, jnp.ones_like(x), 1 - n * s * s)
+    f = s * r_f
+    return f, f + n / 3 * s * (s * s) * r_j
+
+
+def partial_y(c: Array, m: Array, mc: Array) -> Array:
+    """``1 - m sin^2 r`` formed as ``mc + m cos^2 r`` (no cancellation near ``m = 1``)."""
+    return jnp.maximum(mc + m * c * c, 0.0)
+
+
+def complete_y(mc: Array, whole: Array | bool) -> Array:
+    """``y = mc`` of the complete integrals, raised to ``tiny``; the dummy 1 where ``whole`` is false
+    (elements whose complete integrals are multiplied by 0), so that ``m = 1`` has finite
+    derivatives. With ``x = tiny`` instead of 0 (sqrt's forward-mode derivative stays finite;
+    ``R_F`` moves by ``O(sqrt(tiny))``, about 1e-154)."""
+    return jnp.where(whole, jnp.maximum(mc, tiny(mc)), 1.0)
