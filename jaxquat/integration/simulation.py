@@ -357,9 +357,9 @@ def _exact_simulate(q0, omega0, inertia, ts, principal: bool) -> Simulation:
     (float32, 10^4 saved times: ``| |q| - 1 |`` 2.2e-4 when chained, rounding level here), and
     forward and reverse mode both work (no ``custom_vjp`` from diffrax's adjoint). Each body's
     part of the solution is formed once for all its saved times (:func:`propagate` with a time
-    axis): 1000 bodies x 101 saved times on this 2-core CPU, a call 41-44 ms against 96-99 ms when
-    it was formed at every time (float32; float64 65-69 against 207 ms), its gradient 163-182 ms
-    against 467-524 ms (float64 296 against 1042 ms), a ``jvp`` 135-149 against 245-252 ms. Compiled
+    axis): 1000 bodies x 101 saved times on this 2-core CPU, a call 31-39 ms against 96-99 ms when
+    it was formed at every time (float32; float64 60 against 207 ms), its gradient 162-174 ms
+    against 467-524 ms (float64 280 against 1042 ms), a ``jvp`` 131-144 against 245-252 ms. Compiled
     as one program (an eager first call at 11 saved times took 6.0 s as single operations, 3.0 s
     compiled; a repeated call 0.77 s and 5 ms)."""
     if principal:  # rotate to principal axes and back

@@ -79,7 +79,9 @@ def amplitude(u: Array, steps: Array, a_last: Array) -> Array:
         return (phi + _trig.atan2(c * s, jnp.sqrt((a * co) ** 2 + (b * s) ** 2))) / 2, None
 
     phi0 = (2.0**_AGM_STEPS) * a_last * u
-    abc = tuple(jnp.broadcast_to(x, (_AGM_STEPS,) + phi0.shape) for x in steps)
+    # Rank-aligned, not broadcast: a per-body AGM shared by many u stays per body in the loop's
+    # inputs (broadcast, it was stored at the size of u, 8 MB each at 10^5 u in float32).
+    abc = tuple(x.reshape((_AGM_STEPS,) + (1,) * (phi0.ndim - x.ndim + 1) + x.shape[1:]) for x in steps)
     phi, _ = lax.scan(step, phi0, abc, reverse=True)
     return phi
 
