@@ -811,8 +811,10 @@ EAGER_ONE_PROGRAM = {
     "angular_momentum": lambda x: jq.angular_momentum(x["q"], x["v"], x["i"], "space"),
     "kinetic_energy": lambda x: jq.kinetic_energy(x["q"], x["v"], x["i"]),
     "angular_acceleration": lambda x: jq.angular_acceleration(x["q"], x["v"], x["i"], x["u"]),
+    "angular_acceleration, torque-free": lambda x: jq.angular_acceleration(x["q"], x["v"], x["i"]),
     "inverse_dynamics": lambda x: jq.inverse_dynamics(x["q"], x["v"], x["u"], x["i"]),
     "euler_parameter_acceleration": lambda x: jq.euler_parameter_acceleration(x["q"], x["p"], x["i"], x["u"]),
+    "euler_parameter_acceleration, torque-free": lambda x: jq.euler_parameter_acceleration(x["q"], x["p"], x["i"]),
     "euler_parameter_torque": lambda x: jq.euler_parameter_torque(x["q"], x["p"], x["q"], x["i"]),
 }
 

@@ -18,6 +18,8 @@ Two formulations of the same motion, shown equal in ``tests/test_dynamics.py``:
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import jax.numpy as jnp
 from jax import Array
 from jaxtyping import ArrayLike, Float
@@ -42,6 +44,19 @@ __all__ = [
 
 def _torque_or_zero(torque, like) -> Array:
     return jnp.zeros(jnp.shape(like)[:-1] + (3,), dtype=jnp.result_type(like)) if torque is None else torque
+
+
+def _arguments_and_torque(torque, **named: tuple) -> Sequence[Array | None]:
+    """``_checks.arguments(**named)`` with ``torque`` (a vector) inserted before the last argument, or
+    ``None`` in its place when it is ``None``: the compiled body then forms the zero torque
+    (:func:`_torque_or_zero`; formed eagerly before the call it was one more single-operation
+    compilation for every new shape)."""
+    *first, last = named
+    if torque is not None:
+        named = {**{k: named[k] for k in first}, "torque": (torque, "vector"), last: named[last]}
+        return _checks.arguments(**named)
+    *checked, final = _checks.arguments(**named)
+    return [*checked, None, final]
 
 
 def _euler_torque_body(inertia: Array, w: Array, alpha: Array) -> Array:
@@ -111,16 +126,15 @@ def angular_acceleration(
     ``A`` times the body result. ``torque=None`` is torque-free motion.
     """
     frame = _checks.frame(frame)
-    torque = _torque_or_zero(torque, omega)
-    q, omega, torque, inertia = _checks.arguments(
-        q=(q, "quaternion"), omega=(omega, "vector"), torque=(torque, "vector"), inertia=(validated(inertia), "inertia")
+    checked = _arguments_and_torque(
+        torque, q=(q, "quaternion"), omega=(omega, "vector"), inertia=(validated(inertia), "inertia")
     )
-    return _arrays.compiled(_angular_acceleration, q, omega, torque, inertia, frame=frame)
+    return _arrays.compiled(_angular_acceleration, *checked, frame=frame)
 
 
-def _angular_acceleration(q: Array, omega: Array, torque: Array, inertia: Array, frame: str) -> Array:
+def _angular_acceleration(q: Array, omega: Array, torque: Array | None, inertia: Array, frame: str) -> Array:
     w = _rates.to_body(q, omega, frame)
-    m = _rates.to_body(q, torque, frame)
+    m = _rates.to_body(q, _torque_or_zero(torque, omega), frame)
     return _rates.from_body(q, _rates.euler_body(inertia, w, m), frame)
 
 
@@ -171,19 +185,15 @@ def euler_parameter_acceleration(
     constraint.
     """
     frame = _checks.frame(frame)
-    torque = _torque_or_zero(torque, qdot)
-    q, qdot, torque, inertia = _checks.arguments(
-        q=(q, "quaternion"),
-        qdot=(qdot, "quaternion"),
-        torque=(torque, "vector"),
-        inertia=(validated(inertia), "inertia"),
+    checked = _arguments_and_torque(
+        torque, q=(q, "quaternion"), qdot=(qdot, "quaternion"), inertia=(validated(inertia), "inertia")
     )
-    return _arrays.compiled(_euler_parameter_acceleration, q, qdot, torque, inertia, frame=frame)
+    return _arrays.compiled(_euler_parameter_acceleration, *checked, frame=frame)
 
 
-def _euler_parameter_acceleration(q: Array, qdot: Array, torque: Array, inertia: Array, frame: str) -> Array:
+def _euler_parameter_acceleration(q: Array, qdot: Array, torque: Array | None, inertia: Array, frame: str) -> Array:
     w = _rates.omega_from_qdot(q, qdot, "body")
-    a = _rates.euler_body(inertia, w, _rates.to_body(q, torque, frame))
+    a = _rates.euler_body(inertia, w, _rates.to_body(q, _torque_or_zero(torque, qdot), frame))
     return _rates.qddot_from_alpha(q, qdot, a, "body")
 
 
