@@ -367,10 +367,8 @@ def _exact_simulate(q0, omega0, inertia, ts, principal: bool) -> Simulation:
     else:
         moments = jnp.diagonal(inertia, axis1=-2, axis2=-1)
     bodies = jnp.broadcast_shapes(q0.shape[:-1], omega0.shape[:-1], moments.shape[:-1])
-    qs, ws = propagate(
-        *(jnp.broadcast_to(x, bodies + x.shape[-1:]) for x in (q0, omega0, moments)),
-        jnp.broadcast_to(ts - ts[0], bodies + ts.shape),
-    )
+    q0, omega0, moments = (jnp.broadcast_to(x, bodies + x.shape[-1:]) for x in (q0, omega0, moments))
+    qs, ws = propagate(q0, omega0, moments, jnp.broadcast_to(ts - ts[0], bodies + ts.shape))
     if principal:  # the time axis is last among the batch axes here
         qs, ws = _from_principal(qs, ws, q_axes[..., None, :], r[..., None, :, :])
     return Simulation(qs, ws, None)

@@ -5,7 +5,6 @@ Smooth timed splines with continuous angular acceleration are in :mod:`jaxquat.m
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 from jax import Array
 from jaxtyping import ArrayLike, Float
@@ -48,13 +47,13 @@ def squad_control_points(keys: Float[ArrayLike, "*batch n 4"]) -> Float[Array, "
     flipped into the hemisphere of its predecessor), so keys given with either
     sign give the same curve; ``log`` of a relative rotation is the shortest one.
     """
-    return _aligned_keys_and_controls(_checks.quat(keys, "keys"))[1]
+    return _arrays.compiled(_aligned_keys_and_controls, _checks.quat(keys, "keys"))[1]
 
 
 # Compiled whole (the shape check runs while tracing): called eagerly, the squad functions ran
 # operation by operation, each compiled again for every new shape (the squad tests of
-# test_spline.py and test_contract.py, float32: 32.8 s, now 21.4 s). Inside a user's jit they inline.
-@jax.jit
+# test_spline.py and test_contract.py, float32: 32.8 s, now 21.4 s; _arrays.compiled). Inside a user's jit
+# they inline.
 def _aligned_keys_and_controls(keys: Array) -> tuple[Array, Array]:
     """Sign-aligned keys ``(..., n, 4)``, ``n >= 2``, and their squad control points."""
     if keys.ndim < 2 or keys.shape[-2] < 2:
@@ -74,10 +73,9 @@ def squad_segment(
     arrays = [_checks.quat(q0, "q0"), _checks.quat(q1, "q1"), _checks.quat(s0, "s0"), _checks.quat(s1, "s1")]
     h = _checks.scalar_like(h, "h")
     q0, q1, s0, s1, h = _checks.broadcast_batch([*arrays, h], ["q0", "q1", "s0", "s1", "h"], [1, 1, 1, 1, 0])
-    return _squad_segment(q0, q1, s0, s1, h)
+    return _arrays.compiled(_squad_segment, q0, q1, s0, s1, h)
 
 
-@jax.jit
 def _squad_segment(q0: Array, q1: Array, s0: Array, s1: Array, h: Array) -> Array:
     return _rotation.slerp(_rotation.slerp(q0, q1, h), _rotation.slerp(s0, s1, h), 2 * h * (1 - h))
 
@@ -96,10 +94,9 @@ def squad(keys: Float[ArrayLike, "n 4"], u: Float[ArrayLike, "*shape"] | float) 
     keys = _checks.quat(keys, "keys")
     if keys.ndim != 2:
         raise ValueError(f"argument 'keys' must be shaped (n, 4), got shape {tuple(keys.shape)}")
-    return _squad(keys, _checks.scalar_like(u, "u").astype(keys.dtype))
+    return _arrays.compiled(_squad, keys, _checks.scalar_like(u, "u").astype(keys.dtype))
 
 
-@jax.jit
 def _squad(keys: Array, u: Array) -> Array:
     aligned, controls = _aligned_keys_and_controls(keys)
     n = keys.shape[0]

@@ -35,7 +35,7 @@ import jax.numpy as jnp
 from jax import Array, lax
 from jaxtyping import ArrayLike, Float
 
-from .. import _checks, _trig
+from .. import _arrays, _checks, _trig
 
 __all__ = ["ellipj", "ellipk", "elliprf", "elliprj"]
 
@@ -166,18 +166,16 @@ def ellipj(u: Float[ArrayLike, "*#batch"], m: Float[ArrayLike, "*#batch"]) -> tu
     Euler-Poinsot motion: Landau and Lifshitz, Mechanics, section 37.
     """
     (u, m), dtype = _broadcast((u, m), ("u", "m"))
-    return tuple(x.astype(dtype) for x in _ellipj(u, m))
+    return tuple(x.astype(dtype) for x in _arrays.compiled(_ellipj, u, m))
 
 
 # The public functions' kernels are compiled whole: called eagerly they ran operation by
 # operation, each compiled for every new shape (tests/test_elliptic.py, float32: 13.0 s, now
-# 7.3 s). Inside a user's jit they inline. (R_F and R_J: _compiled_rf, _compiled_rj below.)
-@jax.jit
+# 7.3 s; _arrays.compiled). Inside a user's jit they inline.
 def _ellipj(u: Array, m: Array) -> tuple[Array, ...]:
     return tuple(jnp.where(m > 1, jnp.nan, x) for x in _jacobi(u, m, 1 - m))  # as scipy: NaN outside m <= 1
 
 
-@jax.jit
 def _ellipk(m: Array) -> Array:
     return jnp.where(m > 1, jnp.nan, quarter_period(m, 1 - m))
 
@@ -191,7 +189,7 @@ def ellipk(m: Float[ArrayLike, "*batch"]) -> Array:
     :func:`scipy.special.ellipk`.
     """
     (m,), dtype = _broadcast((m,), ("m",))
-    return _ellipk(m).astype(dtype)
+    return _arrays.compiled(_ellipk, m).astype(dtype)
 
 
 def _duplicate(x: Array, y: Array, z: Array) -> tuple[Array, Array, Array, Array]:
@@ -269,7 +267,7 @@ def elliprf(x: Float[ArrayLike, "*#batch"], y: Float[ArrayLike, "*#batch"], z: F
     1 - m sin^2 phi, 1)`` for ``|phi| <= pi/2``. As :func:`scipy.special.elliprf`.
     """
     args, dtype = _broadcast((x, y, z), ("x", "y", "z"))
-    return _compiled_rf(*args).astype(dtype)
+    return _arrays.compiled(rf, *args).astype(dtype)
 
 
 def elliprj(
@@ -286,10 +284,7 @@ def elliprj(
     :func:`scipy.special.elliprj` for ``p > 0``.
     """
     args, dtype = _broadcast((x, y, z, p), ("x", "y", "z", "p"))
-    return _compiled_rj(*args).astype(dtype)
-
-
-_compiled_rf, _compiled_rj = jax.jit(rf), jax.jit(_rj)
+    return _arrays.compiled(_rj, *args).astype(dtype)
 
 
 def reduced_amplitude(sn: Array, cn: Array) -> tuple[Array, Array, Array]:

@@ -131,10 +131,6 @@ def is_valid_inertia(inertia: Float[ArrayLike, "*batch 3 3"], rtol: float | None
     return _validity(jnp, inertia, rtol)
 
 
-# is_valid_inertia as one compiled program, for the tensors that _clearly_valid cannot pass
-_is_valid_compiled = jax.jit(is_valid_inertia, static_argnames="rtol")
-
-
 def _clearly_valid(inertia: Array, rtol: float) -> np.ndarray:
     """Whether each concrete tensor passes :func:`is_valid_inertia` (its conditions evaluated in
     NumPy) with a margin that no difference between NumPy's and XLA's ``eigvalsh`` can cross:
@@ -158,7 +154,7 @@ def _is_valid_concrete(inertia: Array, rtol: float) -> np.ndarray:
     if clear.all():
         return clear
     with jax.ensure_compile_time_eval():  # concrete even when closed over inside a jit trace
-        return np.asarray(_is_valid_compiled(inertia, float(rtol)))
+        return np.asarray(_arrays.compiled(is_valid_inertia, inertia, rtol=float(rtol)))
 
 
 def check_inertia(inertia: Any, name: str = "inertia", rtol: float | None = None) -> Array:

@@ -196,10 +196,9 @@ def quest(
     arbitrary rotation about their common axis.
     """
     b, r, w = _observations(vectors_body, vectors_ref, weights)
-    return _quest(b, r, w)
+    return _arrays.compiled(_quest, b, r, w)
 
 
-@jax.jit
 def _quest(b: Array, r: Array, w: Array) -> Array:
     """:func:`quest` after its argument checks, compiled as one program (an eager call ran the
     Newton loop and the refinement op by op: 1.58 s first and 77 ms for every later call of the
