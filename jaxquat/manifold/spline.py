@@ -20,7 +20,6 @@ so reverse mode works).
 
 from __future__ import annotations
 
-import functools
 from typing import Any
 
 import jax
@@ -139,7 +138,9 @@ class RotationSpline:
             raise ValueError(f"argument 'times' must be strictly increasing, got {np.asarray(times).tolist()}")
         self.times = times  # the input dtype; keys and coefficients in the working dtype
         work = _checks.working_dtype(times.dtype)
-        self.keys, self.coeffs = _fit(times.astype(work), quats.astype(work), max_iter, tol)
+        self.keys, self.coeffs = _arrays.compiled(
+            _fit, times.astype(work), quats.astype(work), max_iter=max_iter, tol=tol
+        )
 
     def __call__(self, t: Float[ArrayLike, "*shape"] | float, order: int = 0) -> Array:
         """Attitude (``order=0``, ``(..., 4)``), body angular velocity (1) or acceleration (2) at ``t``.
@@ -155,14 +156,14 @@ class RotationSpline:
             raise ValueError(f"argument 'order' must be 0, 1 or 2, got {order!r}")
         dtype, work = self.times.dtype, self.coeffs.dtype
         t = _checks.scalar_like(t, "t").astype(dtype).astype(work)
-        return _evaluate(self.times.astype(work), self.keys, self.coeffs, t, order).astype(dtype)
+        times = self.times.astype(work)
+        return _arrays.compiled(_evaluate, times, self.keys, self.coeffs, t, order=order).astype(dtype)
 
 
 # The construction and the evaluation are jitted functions (traced once per shape and dtype):
 # called eagerly, the construction ran op by op and took 5.5 s for its first 5-key spline and
 # 0.9 s for every further one on the reference 2-core machine; jitted, the first costs its
-# compile and the next ones milliseconds. Inside a user's jit they simply inline.
-@functools.partial(jax.jit, static_argnames=("max_iter", "tol"))
+# compile and the next ones milliseconds (_arrays.compiled). Inside a user's jit they simply inline.
 def _fit(times: Array, quats: Array, max_iter: int, tol: float) -> tuple[Array, Array]:
     """Sign-aligned keys and the cubic coefficients ``(3, n-1, 3)``: ``theta(h) = ((c0 h + c1) h + c2) h``."""
     keys = _rotation.align_signs(quats)
@@ -184,7 +185,6 @@ def _fit(times: Array, quats: Array, max_iter: int, tol: float) -> tuple[Array, 
     return keys, coeffs
 
 
-@functools.partial(jax.jit, static_argnames=("order",))
 def _evaluate(times: Array, keys: Array, coeffs: Array, t: Array, order: int) -> Array:
     n = times.shape[0]
     i = jnp.clip(jnp.searchsorted(times, t, side="right") - 1, 0, n - 2)
