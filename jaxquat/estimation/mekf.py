@@ -180,15 +180,17 @@ def _update_quaternion(q, bias, p, q_meas, sigma):
     return (q, bias, p), (residual[None], nis, *statistics(nis, logdet, valid))
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1, 2))
 def vectorized(kernel, signature: str, options: tuple, *args) -> tuple[Array, ...]:
     """``kernel(*args, **dict(options))`` for one filter, broadcast over the batch by
     ``jnp.vectorize`` (which maps over flat outputs only, so the kernel's output, flat or
     ``(state, statistics)``, is flattened to its leaves), compiled as one program per kernel, option and shape.
     Eager calls used to run operation by operation: ``tests/test_ukf.py``'s test of eager
     init/predict/update steps compiled 266 single operations and took 12.8 s (float32, this
-    2-core CPU), now 8.9 s; inside a user's ``jit`` this simply inlines."""
+    2-core CPU), now 8.9 s (``_arrays.compiled``); inside a user's ``jit`` this simply inlines."""
+    return _arrays.compiled(_vectorized, *args, kernel=kernel, signature=signature, options=options)
 
+
+def _vectorized(*args, kernel, signature: str, options: tuple) -> tuple[Array, ...]:
     def flat(*a):
         return tuple(jax.tree.leaves(kernel(*a, **dict(options))))
 
