@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import functools
 import math
 from collections.abc import Callable
 from typing import Any, NamedTuple
@@ -159,7 +158,8 @@ def simulate(
         else:
             max_steps = math.ceil(span / abs(dt0)) + len(ts) + 16
     if exact and adjoint is None and not progress:
-        return _exact_simulate(q0, omega0, inertia if shared_inertia is None else shared_inertia, ts, principal)
+        tensor = inertia if shared_inertia is None else shared_inertia
+        return _arrays.compiled(_exact_simulate, q0, omega0, tensor, ts, principal=principal)
     substeps = None if (adjoint is not None or progress) else _scan_substeps(solver, ts_host, dt0, max_steps)
     adjoint = diffrax.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
     diagonal = substeps is not None and _is_concrete_diagonal(inertia)
@@ -348,7 +348,6 @@ class _Field(eqx.Module):
         return jax.vmap(self._one, in_axes=(None, 0, 0, axis, None))(t, q, w, self.inertia, args)
 
 
-@functools.partial(jax.jit, static_argnames="principal")
 def _exact_simulate(q0, omega0, inertia, ts, principal: bool) -> Simulation:
     """The torque-free flow evaluated in closed form at every ``ts`` from the initial state.
 
