@@ -210,6 +210,17 @@ def arguments(**named: tuple[Any, str]) -> list[Array]:
     return broadcast_batch(arrays, list(named), cores)
 
 
+def optional_arguments(**named: tuple[Any, str]) -> list[Array | None]:
+    """:func:`arguments` where an argument whose kind ends in ``?`` (``"vector?"``) may be ``None``
+    (an omitted optional one): it is returned as ``None`` and takes no part in the broadcast, so a
+    compiled body forms the default (a zero torque, a body-fixed point's zero velocity) inside its
+    program, with no eager operation before it (``jnp.zeros`` outside is a single-operation
+    compilation for every new shape). ``None`` for any other argument fails its check as usual."""
+    given = {n: (v, k.removesuffix("?")) for n, (v, k) in named.items() if not (v is None and k.endswith("?"))}
+    checked = dict(zip(given, arguments(**given)))
+    return [checked.get(name) for name in named]
+
+
 def broadcast_batch(arrays: list[Array], names: list[str], core_ndims: list[int]) -> list[Array]:
     """Broadcast the leading (batch) axes of several arrays, keeping their core axes.
 

@@ -816,15 +816,37 @@ EAGER_ONE_PROGRAM = {
     "euler_parameter_acceleration": lambda x: jq.euler_parameter_acceleration(x["q"], x["p"], x["i"], x["u"]),
     "euler_parameter_acceleration, torque-free": lambda x: jq.euler_parameter_acceleration(x["q"], x["p"], x["i"]),
     "euler_parameter_torque": lambda x: jq.euler_parameter_torque(x["q"], x["p"], x["q"], x["i"]),
+    "euler_parameter_mass_matrix": lambda x: jq.euler_parameter_mass_matrix(x["q"], x["i"]),
+    "euler_parameter_augmented_system": lambda x: jq.euler_parameter_augmented_system(x["q"], x["p"], x["i"], x["u"]),
+    "euler_parameter_augmented_system, torque-free": lambda x: jq.euler_parameter_augmented_system(
+        x["q"], x["p"], x["i"]
+    ),
+    "norm_constraint_multiplier": lambda x: jq.norm_constraint_multiplier(x["q"], x["p"], x["i"]),
+    "generalized_force": lambda x: jq.generalized_force(x["q"], x["u"], "space"),
+    "torque_from_generalized_force": lambda x: jq.torque_from_generalized_force(x["q"], x["p"]),
+    "rate_matrix": lambda x: jq.rate_matrix(x["q"], "space"),
+    "matrix_rate": lambda x: jq.matrix_rate(x["q"], x["v"]),
+    "matrix_acceleration": lambda x: jq.matrix_acceleration(x["q"], x["v"], x["u"], "space"),
+    "point_velocity": lambda x: jq.point_velocity(x["q"], x["v"], x["r"], x["u"]),
+    "point_velocity, body-fixed": lambda x: jq.point_velocity(x["q"], x["v"], x["r"]),
+    "point_acceleration": lambda x: jq.point_acceleration(x["q"], x["v"], x["u"], x["r"], x["w"], x["u"]),
+    "point_acceleration, body-fixed": lambda x: jq.point_acceleration(x["q"], x["v"], x["u"], x["r"]),
+    "inertia_from_points": lambda x: jq.inertia_from_points(x["m"], x["v"]),
+    "rotate_inertia": lambda x: jq.rotate_inertia(x["q"], x["i"]),
+    "inertia_rate": lambda x: jq.inertia_rate(x["i"], x["v"]),
+    "quaternion_inertia": lambda x: jq.quaternion_inertia(x["i"]),
+    "principal_axes": lambda x: jq.principal_axes(x["i"]),
+    "gravity_gradient_torque": lambda x: jq.gravity_gradient_torque(x["q"], x["r"], x["i"], x["t"]),
 }
 
 
 @pytest.mark.parametrize("name", sorted(EAGER_ONE_PROGRAM))
 def test_an_eager_call_lowers_at_most_one_program(name):
-    """Outside ``jit`` a public rotation function (and each of the kinematics' four rate
-    relations and six of the dynamics functions) runs its body as one compiled program
-    (``_arrays.compiled``), not as one compilation per operation (6 to 55 of them before, each
-    a notebook user waited for). Counted by JAX's lowering events on a batch size (23) that no
+    """Outside ``jit`` a public rotation function (and each function of the kinematics, the
+    dynamics, the inertia module and the gravity-gradient torque) runs its body as one compiled
+    program (``_arrays.compiled``), not as one compilation per operation (6 to 55 of them before,
+    each a notebook user waited for); an omitted optional argument (a torque, a point's relative
+    velocity) is formed inside that program. Counted by JAX's lowering events on a batch size (23) that no
     other test uses, the inputs made beforehand; at most one, so a program already compiled
     for this shape in the same worker passes as well."""
     rng = np.random.default_rng(23)

@@ -18,8 +18,6 @@ Two formulations of the same motion, shown equal in ``tests/test_dynamics.py``:
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import jax.numpy as jnp
 from jax import Array
 from jaxtyping import ArrayLike, Float
@@ -44,19 +42,6 @@ __all__ = [
 
 def _torque_or_zero(torque, like) -> Array:
     return jnp.zeros(jnp.shape(like)[:-1] + (3,), dtype=jnp.result_type(like)) if torque is None else torque
-
-
-def _arguments_and_torque(torque, **named: tuple) -> Sequence[Array | None]:
-    """``_checks.arguments(**named)`` with ``torque`` (a vector) inserted before the last argument, or
-    ``None`` in its place when it is ``None``: the compiled body then forms the zero torque
-    (:func:`_torque_or_zero`; formed eagerly before the call it was one more single-operation
-    compilation for every new shape)."""
-    *first, last = named
-    if torque is not None:
-        named = {**{k: named[k] for k in first}, "torque": (torque, "vector"), last: named[last]}
-        return _checks.arguments(**named)
-    *checked, final = _checks.arguments(**named)
-    return [*checked, None, final]
 
 
 def _euler_torque_body(inertia: Array, w: Array, alpha: Array) -> Array:
@@ -126,8 +111,11 @@ def angular_acceleration(
     ``A`` times the body result. ``torque=None`` is torque-free motion.
     """
     frame = _checks.frame(frame)
-    checked = _arguments_and_torque(
-        torque, q=(q, "quaternion"), omega=(omega, "vector"), inertia=(validated(inertia), "inertia")
+    checked = _checks.optional_arguments(
+        q=(q, "quaternion"),
+        omega=(omega, "vector"),
+        torque=(torque, "vector?"),
+        inertia=(validated(inertia), "inertia"),
     )
     return _arrays.compiled(_angular_acceleration, *checked, frame=frame)
 
@@ -185,8 +173,11 @@ def euler_parameter_acceleration(
     constraint.
     """
     frame = _checks.frame(frame)
-    checked = _arguments_and_torque(
-        torque, q=(q, "quaternion"), qdot=(qdot, "quaternion"), inertia=(validated(inertia), "inertia")
+    checked = _checks.optional_arguments(
+        q=(q, "quaternion"),
+        qdot=(qdot, "quaternion"),
+        torque=(torque, "vector?"),
+        inertia=(validated(inertia), "inertia"),
     )
     return _arrays.compiled(_euler_parameter_acceleration, *checked, frame=frame)
 
@@ -246,6 +237,10 @@ def euler_parameter_mass_matrix(
     :func:`euler_parameter_augmented_system` makes the system solvable.
     """
     q, inertia = _checks.arguments(q=(q, "quaternion"), inertia=(validated(inertia), "inertia"))
+    return _arrays.compiled(_mass_matrix, q, inertia)
+
+
+def _mass_matrix(q: Array, inertia: Array) -> Array:
     return 4.0 * _quat_inertia_product(q, inertia)
 
 
@@ -260,6 +255,10 @@ def generalized_force(
     """
     frame = _checks.frame(frame)
     q, torque = _checks.arguments(q=(q, "quaternion"), torque=(torque, "vector"))
+    return _arrays.compiled(_generalized_force, q, torque, frame=frame)
+
+
+def _generalized_force(q: Array, torque: Array, frame: str) -> Array:
     m = _quaternion.pure(torque)
     return 2.0 * (_quaternion.multiply(q, m) if frame == "body" else _quaternion.multiply(m, q))
 
@@ -275,6 +274,10 @@ def torque_from_generalized_force(
     """
     frame = _checks.frame(frame)
     q, force = _checks.arguments(q=(q, "quaternion"), force=(force, "quaternion"))
+    return _arrays.compiled(_torque_from_generalized_force, q, force, frame=frame)
+
+
+def _torque_from_generalized_force(q: Array, force: Array, frame: str) -> Array:
     return 0.5 * _rates.vec_rate(q, force, frame)
 
 
@@ -301,16 +304,19 @@ def euler_parameter_augmented_system(
     :func:`euler_parameter_acceleration`.
     """
     frame = _checks.frame(frame)
-    torque = _torque_or_zero(torque, qdot)
-    q, qdot, torque, inertia = _checks.arguments(
+    checked = _checks.optional_arguments(
         q=(q, "quaternion"),
         qdot=(qdot, "quaternion"),
-        torque=(torque, "vector"),
+        torque=(torque, "vector?"),
         inertia=(validated(inertia), "inertia"),
     )
+    return _arrays.compiled(_augmented_system, *checked, frame=frame)
+
+
+def _augmented_system(q: Array, qdot: Array, torque: Array | None, inertia: Array, frame: str) -> tuple[Array, Array]:
     mass = 4.0 * _quat_inertia_product(q, inertia)
     gyro = 8.0 * _arrays.matmul(_quat_inertia_product(qdot, inertia), q[..., None])
-    m = _quaternion.pure(_rates.to_body(q, torque, frame))
+    m = _quaternion.pure(_rates.to_body(q, _torque_or_zero(torque, qdot), frame))
     top_rhs = 2.0 * _quaternion.multiply(q, m) + gyro[..., 0]
     rhs = jnp.concatenate([top_rhs, -2.0 * jnp.sum(qdot * qdot, -1, keepdims=True)], axis=-1)
     col = 2.0 * q[..., :, None]
@@ -330,5 +336,9 @@ def norm_constraint_multiplier(
     q, qdot, inertia = _checks.arguments(
         q=(q, "quaternion"), qdot=(qdot, "quaternion"), inertia=(validated(inertia), "inertia")
     )
+    return _arrays.compiled(_norm_constraint_multiplier, q, qdot, inertia)
+
+
+def _norm_constraint_multiplier(q: Array, qdot: Array, inertia: Array) -> Array:
     w = _rates.omega_from_qdot(q, qdot, "body")
     return _arrays.dot(w, _arrays.matvec(inertia, w))

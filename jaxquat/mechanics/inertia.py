@@ -51,6 +51,10 @@ def inertia_from_points(
         raise ValueError(f"argument 'positions' must be shaped (..., n, 3), got shape {tuple(r.shape)}")
     m = _checks.per_item(masses, "masses", r, "positions")
     r, m = _checks.arguments(positions=(r, "vectors"), masses=(m, "scalars"))
+    return _arrays.compiled(_inertia_from_points, r, m)
+
+
+def _inertia_from_points(r: Array, m: Array) -> Array:
     outer = r[..., :, None] * r[..., None, :]
     eye = jnp.broadcast_to(jnp.eye(3, dtype=r.dtype), outer.shape)
     per_point = jnp.sum(r * r, -1)[..., None, None] * eye - outer
@@ -65,6 +69,10 @@ def rotate_inertia(
     ``rotate_inertia(conjugate(q), I0)`` goes back. Assumes ``|q| = 1``.
     """
     q, inertia = _checks.arguments(q=(q, "quaternion"), inertia=(inertia, "inertia"))
+    return _arrays.compiled(_rotate_inertia, q, inertia)
+
+
+def _rotate_inertia(q: Array, inertia: Array) -> Array:
     a = _rotation.to_matrix(q)
     return _arrays.matmul(_arrays.matmul(a, inertia), jnp.swapaxes(a, -1, -2))
 
@@ -74,6 +82,10 @@ def inertia_rate(
 ) -> Float[Array, "*batch 3 3"]:
     """Time derivative of the space-frame inertia of a rigid body: ``dI0/dt = hat(w) I0 - I0 hat(w)``, [C] eq. (C4)."""
     i0, w = _checks.arguments(inertia_space=(inertia_space, "inertia"), omega_space=(omega_space, "vector"))
+    return _arrays.compiled(_inertia_rate, i0, w)
+
+
+def _inertia_rate(i0: Array, w: Array) -> Array:
     wh = _arrays.hat(w)
     return _arrays.matmul(wh, i0) - _arrays.matmul(i0, wh)
 
@@ -87,7 +99,10 @@ def quaternion_inertia(inertia: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, 
     velocity, which is zero, so ``quaternion_inertia(I) @ (0, w) = (0, I w)``
     ([C] eqs. (60)-(61)); its role is to make the four-space matrix invertible.
     """
-    inertia = _checks.inertia(inertia)
+    return _arrays.compiled(_quaternion_inertia, _checks.inertia(inertia))
+
+
+def _quaternion_inertia(inertia: Array) -> Array:
     k = 0.5 * jnp.trace(inertia, axis1=-2, axis2=-1)
     top = jnp.concatenate([k[..., None], jnp.zeros_like(inertia[..., 0, :])], axis=-1)
     bottom = jnp.concatenate([jnp.zeros_like(inertia[..., :, :1]), inertia], axis=-1)
@@ -221,7 +236,10 @@ def principal_axes(
     equal (a symmetric top): differentiate with respect to the principal
     moments there instead. Chou (1992) eq. (C1) is the inverse map.
     """
-    inertia = validated(inertia)
+    return _arrays.compiled(_principal_axes, validated(inertia))
+
+
+def _principal_axes(inertia: Array) -> tuple[Array, Array]:
     dtype = inertia.dtype
     moments, vectors = jnp.linalg.eigh(inertia.astype(_checks.working_dtype(dtype)))
     det = jnp.linalg.det(vectors)

@@ -57,7 +57,10 @@ def rate_matrix(q: Float[ArrayLike, "*batch 4"], frame: str = "body") -> Float[A
     ``hat(w_s) = 2 (dE_space/dt) E_space^T`` ([C] eqs. (45), (51)).
     """
     frame = _checks.frame(frame)
-    q = _checks.quat(q)
+    return _arrays.compiled(_rate_matrix, _checks.quat(q), frame=frame)
+
+
+def _rate_matrix(q: Array, frame: str) -> Array:
     w, v = q[..., 0], q[..., 1:]
     skew = _arrays.hat(v)
     eye = jnp.broadcast_to(jnp.eye(3, dtype=q.dtype), skew.shape)
@@ -160,6 +163,10 @@ def matrix_rate(
     """
     frame = _checks.frame(frame)
     q, omega = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"))
+    return _arrays.compiled(_matrix_rate, q, omega, frame=frame)
+
+
+def _matrix_rate(q: Array, omega: Array, frame: str) -> Array:
     a = _rotation.to_matrix(q)
     return _arrays.matmul(a, _arrays.hat(omega)) if frame == "body" else _arrays.matmul(_arrays.hat(omega), a)
 
@@ -178,6 +185,10 @@ def matrix_acceleration(
     """
     frame = _checks.frame(frame)
     q, omega, alpha = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"), alpha=(alpha, "vector"))
+    return _arrays.compiled(_matrix_acceleration, q, omega, alpha, frame=frame)
+
+
+def _matrix_acceleration(q: Array, omega: Array, alpha: Array, frame: str) -> Array:
     a = _rotation.to_matrix(q)
     w = _arrays.hat(omega)
     k = _arrays.matmul(w, w) + _arrays.hat(alpha)
@@ -199,12 +210,16 @@ def point_velocity(
     in the body frame (``r_dot`` defaults to 0, a body-fixed point). Assumes ``|q| = 1``.
     """
     frame = _checks.frame(frame)
-    r_dot = jnp.zeros_like(_checks.vec3(r, "r")) if r_dot is None else r_dot
-    q, omega, r, r_dot = _checks.arguments(
-        q=(q, "quaternion"), omega=(omega, "vector"), r=(r, "vector"), r_dot=(r_dot, "vector")
+    checked = _checks.optional_arguments(
+        q=(q, "quaternion"), omega=(omega, "vector"), r=(r, "vector"), r_dot=(r_dot, "vector?")
     )
+    return _arrays.compiled(_point_velocity, *checked, frame=frame)
+
+
+def _point_velocity(q: Array, omega: Array, r: Array, r_dot: Array | None, frame: str) -> Array:
     w = _rates.to_body(q, omega, frame)
-    return _quaternion.rotate(q, jnp.cross(w, r) + r_dot)
+    v = jnp.cross(w, r)
+    return _quaternion.rotate(q, v if r_dot is None else v + r_dot)
 
 
 def point_acceleration(
@@ -226,17 +241,21 @@ def point_acceleration(
     Assumes ``|q| = 1``.
     """
     frame = _checks.frame(frame)
-    zero = jnp.zeros_like(_checks.vec3(r, "r"))
-    r_dot = zero if r_dot is None else r_dot
-    r_ddot = zero if r_ddot is None else r_ddot
-    q, omega, alpha, r, r_dot, r_ddot = _checks.arguments(
+    checked = _checks.optional_arguments(
         q=(q, "quaternion"),
         omega=(omega, "vector"),
         alpha=(alpha, "vector"),
         r=(r, "vector"),
-        r_dot=(r_dot, "vector"),
-        r_ddot=(r_ddot, "vector"),
+        r_dot=(r_dot, "vector?"),
+        r_ddot=(r_ddot, "vector?"),
     )
+    return _arrays.compiled(_point_acceleration, *checked, frame=frame)
+
+
+def _point_acceleration(
+    q: Array, omega: Array, alpha: Array, r: Array, r_dot: Array | None, r_ddot: Array | None, frame: str
+) -> Array:
     w, a = _rates.to_body(q, omega, frame), _rates.to_body(q, alpha, frame)
-    acc = jnp.cross(a, r) + jnp.cross(w, jnp.cross(w, r)) + 2.0 * jnp.cross(w, r_dot) + r_ddot
-    return _quaternion.rotate(q, acc)
+    acc = jnp.cross(a, r) + jnp.cross(w, jnp.cross(w, r))
+    acc = acc if r_dot is None else acc + 2.0 * jnp.cross(w, r_dot)
+    return _quaternion.rotate(q, acc if r_ddot is None else acc + r_ddot)

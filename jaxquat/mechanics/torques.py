@@ -68,6 +68,10 @@ def gravity_gradient_torque(
     q, r, inertia, mu = _checks.arguments(
         q=(q, "quaternion"), position=(position, "vector"), inertia=(inertia, "inertia"), mu=(mu, "scalar")
     )
+    return _arrays.compiled(_gravity_gradient_torque, q, r, inertia, mu)
+
+
+def _gravity_gradient_torque(q: Array, r: Array, inertia: Array, mu: Array) -> Array:
     rb = _quaternion.rotate(_quaternion.conjugate(q), r)
     rsq = jnp.sum(r * r, axis=-1)
     coeff = 3.0 * mu / (rsq * rsq * jnp.sqrt(rsq))
