@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -25,9 +26,16 @@ def as_float_array(x: Any, name: str) -> Array:
     Integer, boolean and complex arrays, and lists of booleans or complex numbers,
     raise ``TypeError``: silently promoting integer quaternions hides bugs (and the
     gradients are meaningless), and a complex value would lose its imaginary part.
+
+    Python numbers and floating NumPy arrays go to the device by ``jax.device_put`` (the same
+    dtype, weak type and values as ``jnp.asarray``): ``jnp.asarray`` of them is a compiled
+    operation (``stage``), one more single-operation compilation for every new shape of an
+    eager call.
     """
     if isinstance(x, (float, int)) and not isinstance(x, bool):
-        return jnp.asarray(float(x))
+        return jax.device_put(float(x))
+    if isinstance(x, (np.ndarray, np.floating)) and np.issubdtype(x.dtype, np.floating):
+        return jax.device_put(x)
     if isinstance(x, (list, tuple)):
         x = _weak_list(x)
     arr = jnp.asarray(x)

@@ -837,6 +837,20 @@ EAGER_ONE_PROGRAM = {
     "quaternion_inertia": lambda x: jq.quaternion_inertia(x["i"]),
     "principal_axes": lambda x: jq.principal_axes(x["i"]),
     "gravity_gradient_torque": lambda x: jq.gravity_gradient_torque(x["q"], x["r"], x["i"], x["t"]),
+    "conjugate": lambda x: jq.conjugate(x["q"]),
+    "norm": lambda x: jq.norm(x["p"]),
+    "inverse": lambda x: jq.inverse(x["p"]),
+    "left_matrix": lambda x: jq.left_matrix(x["q"]),
+    "right_matrix": lambda x: jq.right_matrix(x["q"]),
+    "rotate": lambda x: jq.rotate(x["q"], x["v"]),
+    "rotate, NumPy arguments": lambda x: jq.rotate(np.asarray(x["q"]), np.asarray(x["v"])),
+    "to_matrix": lambda x: jq.to_matrix(x["q"]),
+    "hat": lambda x: jq.hat(x["v"]),
+    "vee": lambda x: jq.vee(x["m"]),
+    "adjoint": lambda x: jq.adjoint(x["q"]),
+    "polhode_period": lambda x: jq.polhode_period(x["v"], x["d"]),
+    "attitude_covariance": lambda x: jq.attitude_covariance(x["m"], x["v"]),
+    "invariants": lambda x: jq.invariants(x["q"], x["v"], x["i"]),
 }
 
 
@@ -854,6 +868,7 @@ def test_an_eager_call_lowers_at_most_one_program(name):
     x |= {k: jnp.asarray(rng.normal(size=(23, 3)), DTYPE) for k in "vuwr"}
     x |= {"m": jnp.asarray(rng.normal(size=(23, 3, 3)), DTYPE), "t": jnp.asarray(rng.uniform(0.1, 0.9, 23), DTYPE)}
     x["i"] = jnp.asarray(random_inertias(23, 23), DTYPE)
+    x["d"] = jnp.asarray(rng.uniform(1.0, 1.9, size=(23, 3)), DTYPE)  # principal moments
     jax.block_until_ready(x)
     lowered = []
 

@@ -124,4 +124,4 @@ def adjoint(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
     Moves a body-frame tangent vector to the space frame:
     ``plus(q, d, "body") == plus(q, adjoint(q) @ d, "space")``. Assumes ``|q| = 1``.
     """
-    return _rotation.to_matrix(_checks.quat(q))
+    return _arrays.compiled(_rotation.to_matrix, _checks.quat(q))

@@ -91,6 +91,10 @@ def invariants(
     """
     inertia = validated(inertia)
     q, omega, inertia = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"), inertia=(inertia, "inertia"))
+    return _arrays.compiled(_invariants, q, omega, inertia)
+
+
+def _invariants(q: Array, omega: Array, inertia: Array) -> dict[str, Array]:
     norm = jnp.sqrt(jnp.sum(q * q, -1))
     h = _arrays.matvec(inertia, omega)  # body frame, as omega
     return {

@@ -44,6 +44,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 from jaxtyping import ArrayLike, Float
 
@@ -67,8 +68,11 @@ __all__ = ["euler_poinsot", "polhode_period"]
 
 def _validated_moments(moments, name: str = "moments") -> Array:
     moments = _checks.vec3(moments, name)
-    if not _checks.is_traced(moments):
-        validated(jnp.vectorize(jnp.diag, signature="(3)->(3,3)")(moments), name)
+    if not _checks.is_traced(moments):  # the diagonal tensors built in NumPy: no eager XLA operation
+        m = np.asarray(moments)
+        tensors = np.zeros(m.shape + (3,), m.dtype)
+        tensors[..., [0, 1, 2], [0, 1, 2]] = m
+        validated(tensors, name)
     return moments
 
 
@@ -345,8 +349,11 @@ def polhode_period(
     omega0, moments = _checks.arguments(omega0=(omega0, "vector"), moments=(moments, "vector"))
     dtype = omega0.dtype
     work = _checks.working_dtype(dtype)
-    omega0, moments = omega0.astype(work), moments.astype(work)
+    return _arrays.compiled(_polhode_period, omega0.astype(work), moments.astype(work)).astype(dtype)
+
+
+def _polhode_period(omega0: Array, moments: Array) -> Array:
     general, safe_w, safe_i, roles = _safe_state(moments, omega0)
     *_, m, mc, lam = _parameters(safe_i, safe_w, *roles)
     period = 4 * quarter_period(m, mc) / lam
-    return jnp.where(general & (mc > 0), period, jnp.inf).astype(dtype)
+    return jnp.where(general & (mc > 0), period, jnp.inf)

@@ -54,7 +54,7 @@ def multiply(p: Float[ArrayLike, "*#batch 4"], q: Float[ArrayLike, "*#batch 4"])
 
 def conjugate(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     """Conjugate ``q* = (q0, -q)``, [T] eq. (9). The inverse rotation for unit ``q``."""
-    return _quaternion.conjugate(_checks.quat(q))
+    return _arrays.compiled(_quaternion.conjugate, _checks.quat(q))
 
 
 def norm(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch"]:
@@ -62,8 +62,7 @@ def norm(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch"]:
 
     The gradient at ``q = 0`` is 0 (a subgradient of the cone) instead of NaN.
     """
-    q = _checks.quat(q)
-    return _safe.safe_norm(q)
+    return _arrays.compiled(_safe.safe_norm, _checks.quat(q))
 
 
 def normalize(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
@@ -82,7 +81,10 @@ def inverse(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
 
     For a zero quaternion the result is NaN (element-wise, as in :func:`normalize`).
     """
-    q = _checks.quat(q)
+    return _arrays.compiled(_inverse, _checks.quat(q))
+
+
+def _inverse(q: Array) -> Array:
     return _quaternion.conjugate(q) / _safe.norm_sq(q)[..., None]
 
 
@@ -170,7 +172,11 @@ def left_matrix(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4 4"]:
     ``[[q0, -q^T], [q, q0 I + q~]]``: Chou's "+" matrix [C] eq. (11), Schwab's
     ``Q`` [S] eq. (3), Tasora's ``[M(q)+]`` [T] eq. (20b).
     """
-    w, x, y, z = _quaternion.split(_checks.quat(q))
+    return _arrays.compiled(_left_matrix, _checks.quat(q))
+
+
+def _left_matrix(q: Array) -> Array:
+    w, x, y, z = _quaternion.split(q)
     return jnp.stack(
         [
             jnp.stack([w, -x, -y, -z], -1),
@@ -188,7 +194,11 @@ def right_matrix(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4 4"]:
     ``[[q0, -q^T], [q, q0 I - q~]]``: Chou's "-" matrix [C] eq. (11), Schwab's
     ``Q-bar`` [S] eq. (3), Tasora's ``[M(q)-]`` [T] eq. (20c).
     """
-    w, x, y, z = _quaternion.split(_checks.quat(q))
+    return _arrays.compiled(_right_matrix, _checks.quat(q))
+
+
+def _right_matrix(q: Array) -> Array:
+    w, x, y, z = _quaternion.split(q)
     return jnp.stack(
         [
             jnp.stack([w, -x, -y, -z], -1),
@@ -209,7 +219,7 @@ def rotate(q: Float[ArrayLike, "*#batch 4"], v: Float[ArrayLike, "*#batch 3"]) -
     broadcast over their batch axes.
     """
     q, v = _checks.arguments(q=(q, "quaternion"), v=(v, "vector"))
-    return _quaternion.rotate(q, v)
+    return _arrays.compiled(_quaternion.rotate, q, v)
 
 
 def canonicalize(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:

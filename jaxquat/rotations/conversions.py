@@ -35,7 +35,7 @@ def to_matrix(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
     the diagonal. Assumes ``|q| = 1``: for a non-unit ``q`` the result is not
     orthogonal (normalise first). ``to_matrix(q) == to_matrix(-q)``.
     """
-    return _rotation.to_matrix(_checks.quat(q))
+    return _arrays.compiled(_rotation.to_matrix, _checks.quat(q))
 
 
 def from_matrix(m: Float[ArrayLike, "*batch 3 3"], *, nearest: bool = False) -> Float[Array, "*batch 4"]:

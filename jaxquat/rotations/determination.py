@@ -231,6 +231,10 @@ def attitude_covariance(
     s = jnp.broadcast_to(s, s.shape if s.ndim else b.shape[-2:-1])
     s = _checks.per_item(s, "noise", b, "vectors_body")
     b, s = _checks.arguments(vectors_body=(b, "vectors"), noise=(s, "scalars"))
+    return _arrays.compiled(_attitude_covariance, b, s)
+
+
+def _attitude_covariance(b: Array, s: Array) -> Array:
     u = _unit(b)
     work = _checks.working_dtype(b.dtype)
     u, s = u.astype(work), s.astype(work)
