@@ -837,6 +837,7 @@ EAGER_ONE_PROGRAM = {
     "quaternion_inertia": lambda x: jq.quaternion_inertia(x["i"]),
     "principal_axes": lambda x: jq.principal_axes(x["i"]),
     "gravity_gradient_torque": lambda x: jq.gravity_gradient_torque(x["q"], x["r"], x["i"], x["t"]),
+    "gravity_gradient_torque, default mu": lambda x: jq.gravity_gradient_torque(x["q"], x["r"], x["i"]),
     "conjugate": lambda x: jq.conjugate(x["q"]),
     "norm": lambda x: jq.norm(x["p"]),
     "inverse": lambda x: jq.inverse(x["p"]),

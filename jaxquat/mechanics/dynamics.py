@@ -40,6 +40,17 @@ __all__ = [
 ]
 
 
+def _checked_with_torque(q, rate_name: str, rate, torque, inertia) -> list[Array | None]:
+    """The argument checks of a function of an attitude, its rate (``omega`` a vector or ``qdot`` a
+    quaternion), an optional torque (``None`` passed on) and an inertia, in that order."""
+    kind = "vector" if rate_name == "omega" else "quaternion"
+    return _checks.optional_arguments(
+        **{"q": (q, "quaternion"), rate_name: (rate, kind)},
+        torque=(torque, "vector?"),
+        inertia=(validated(inertia), "inertia"),
+    )
+
+
 def _torque_or_zero(torque, like) -> Array:
     return jnp.zeros(jnp.shape(like)[:-1] + (3,), dtype=jnp.result_type(like)) if torque is None else torque
 
@@ -111,12 +122,7 @@ def angular_acceleration(
     ``A`` times the body result. ``torque=None`` is torque-free motion.
     """
     frame = _checks.frame(frame)
-    checked = _checks.optional_arguments(
-        q=(q, "quaternion"),
-        omega=(omega, "vector"),
-        torque=(torque, "vector?"),
-        inertia=(validated(inertia), "inertia"),
-    )
+    checked = _checked_with_torque(q, "omega", omega, torque, inertia)
     return _arrays.compiled(_angular_acceleration, *checked, frame=frame)
 
 
@@ -173,12 +179,7 @@ def euler_parameter_acceleration(
     constraint.
     """
     frame = _checks.frame(frame)
-    checked = _checks.optional_arguments(
-        q=(q, "quaternion"),
-        qdot=(qdot, "quaternion"),
-        torque=(torque, "vector?"),
-        inertia=(validated(inertia), "inertia"),
-    )
+    checked = _checked_with_torque(q, "qdot", qdot, torque, inertia)
     return _arrays.compiled(_euler_parameter_acceleration, *checked, frame=frame)
 
 
@@ -304,12 +305,7 @@ def euler_parameter_augmented_system(
     :func:`euler_parameter_acceleration`.
     """
     frame = _checks.frame(frame)
-    checked = _checks.optional_arguments(
-        q=(q, "quaternion"),
-        qdot=(qdot, "quaternion"),
-        torque=(torque, "vector?"),
-        inertia=(validated(inertia), "inertia"),
-    )
+    checked = _checked_with_torque(q, "qdot", qdot, torque, inertia)
     return _arrays.compiled(_augmented_system, *checked, frame=frame)
 
 

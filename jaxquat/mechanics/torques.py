@@ -65,9 +65,15 @@ def gravity_gradient_torque(
     potential ``V = -mu/(2|r|^3) (tr I - 3 r_b.I r_b/|r|^2)`` with respect to a
     body-frame rotation (tested). Assumes ``|q| = 1``.
     """
-    q, r, inertia, mu = _checks.arguments(
-        q=(q, "quaternion"), position=(position, "vector"), inertia=(inertia, "inertia"), mu=(mu, "scalar")
-    )
+    mu = _checks.scalar_like(mu, "mu")
+    if mu.ndim == 0 and mu.weak_type:  # a Python number: used as it is (a weak scalar takes the others' dtype)
+        q, r, inertia = _checks.arguments(
+            q=(q, "quaternion"), position=(position, "vector"), inertia=(inertia, "inertia")
+        )
+    else:
+        q, r, inertia, mu = _checks.arguments(
+            q=(q, "quaternion"), position=(position, "vector"), inertia=(inertia, "inertia"), mu=(mu, "scalar")
+        )
     return _arrays.compiled(_gravity_gradient_torque, q, r, inertia, mu)
 
 
