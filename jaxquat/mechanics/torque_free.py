@@ -259,8 +259,9 @@ def propagate(q0: Array, omega0: Array, moments: Array, t: Array) -> tuple[Array
     call at 11 times took 6.0 s as 214 single-operation compilations, 3.0 s compiled whole; a
     repeated eager call 0.77 s, now 5 ms.
     Forming the per-body part once instead of at every time (``simulate``'s default path, 1000
-    bodies x 101 saved times, this 2-core CPU): a call 34 ms against 100 ms in float32, 67 against
-    162 ms in float64 (the loops of the AGM and of one Carlson evaluation run per body)."""
+    bodies x 101 saved times, this 2-core CPU): a call 31-39 ms against 96-99 ms in float32, 60
+    against 207 ms in float64 (the loops of the AGM and of one Carlson evaluation run per body;
+    ``docs/benchmarks.md``)."""
     extra = t.ndim - (q0.ndim - 1)
     general, safe_w, safe_i, roles = _safe_state(moments, omega0)
     k = _motion(q0, safe_w, safe_i, *roles)
