@@ -143,12 +143,54 @@ def _safe_state(moments: Array, omega: Array):
 
 class _Motion(NamedTuple):
     """What the elliptic solution needs of one body and its initial state, formed once for all
-    its times (:func:`_motion`); ``vectors`` and ``quaternions`` end in a component axis."""
+    its times (:func:`_motion`; names as in the module docstring, ``s`` the sign of ``w_a``,
+    ``wb_hat = A_b sn(u_0)``, ``abs_wa = A_a dn(u_0)``). The fields from ``e`` on end in a component
+    axis; ``agm`` is the AGM of ``m`` (:func:`jaxquat.mechanics.elliptic.agm`)."""
 
-    scalars: tuple[Array, ...]
-    vectors: tuple[Array, ...]
-    quaternions: tuple[Array, ...]
+    m: Array
+    mc: Array
+    lam: Array
+    amp_a: Array
+    r_cb: Array  # A_c / A_b
+    g: Array  # m / A_b^2
+    sigma: Array
+    s: Array
+    wb_hat: Array
+    abs_wa: Array
+    dn0: Array
+    wc: Array
+    sn0: Array
+    cn0: Array
+    ell: Array  # |L|
+    nu: Array
+    kb: Array
+    kc: Array
+    ia: Array
+    ic: Array
+    pi_full: Array  # Pi(-nu | m), complete
+    pi0: Array  # Pi(-nu; am u_0 | m)
+    chi0: Array
+    u0: Array  # only rounded: no derivatives
+    e: Array  # the fixed body axis +-e_a
+    moments: Array
+    ea: Array
+    eb: Array
+    ec: Array
+    left: Array  # q_0 p_0*, a quaternion
     agm: tuple[Array, Array]
+
+    def at_times(self, t: Array) -> _Motion:
+        """Each field broadcast to the shape of the times ``t`` (``batch + T``), once: reverse mode
+        then sums each per-body cotangent over the times once, not at every use."""
+        extra = (None,) * (t.ndim - self.m.ndim)
+        fields = {
+            name: jnp.broadcast_to(x[(..., *extra)], t.shape)
+            if x.ndim == self.m.ndim
+            else jnp.broadcast_to(x[(..., *extra, slice(None))], t.shape + x.shape[-1:])
+            for name, x in self._asdict().items()
+            if name != "agm"
+        }
+        return _Motion(**fields, agm=(self.agm[0][(..., *extra)], self.agm[1][(..., *extra)]))
 
 
 def _motion(q0: Array, w0: Array, moments: Array, a: Array, b: Array, c: Array) -> _Motion:
@@ -188,13 +230,40 @@ def _motion(q0: Array, w0: Array, moments: Array, a: Array, b: Array, c: Array) 
     # (only rounded, so formed without derivatives).
     agm_of_m = jax.lax.stop_gradient(agm(m, mc))
     u0 = jax.lax.stop_gradient(h0 * jnp.pi / agm_of_m[1] + f[0])
-    e = s[..., None] * jax.nn.one_hot(a, 3, dtype=w0.dtype)
+    e = s[..., None] * jax.nn.one_hot(a, 3, dtype=w0.dtype)  # the fixed body axis
     p0 = _rotation.minimal_rotation(e, moments * w0 / ell[..., None])  # takes the unit momentum onto e
+    ea, eb, ec = (jax.nn.one_hot(i, 3, dtype=w0.dtype) for i in (a, b, c))
     return _Motion(
-        scalars=(m, mc, lam, amp_a, r_cb, g, sigma, s, wb_hat, abs_wa, dn0, wc, sn0, cn0, ell, nu, kb, kc, ia, ic)
-        + (pi_full, pi0, _chi(_trig.atan2(sn0, cn0), sn0, cn0, kb, kc), u0),
-        vectors=(e, moments, *(jax.nn.one_hot(i, 3, dtype=w0.dtype) for i in (a, b, c))),
-        quaternions=(_quaternion.multiply(q0, _quaternion.conjugate(p0)),),
+        m,
+        mc,
+        lam,
+        amp_a,
+        r_cb,
+        g,
+        sigma,
+        s,
+        wb_hat,
+        abs_wa,
+        dn0,
+        wc,
+        sn0,
+        cn0,
+        ell,
+        nu,
+        kb,
+        kc,
+        ia,
+        ic,
+        pi_full=pi_full,
+        pi0=pi0,
+        chi0=_chi(_trig.atan2(sn0, cn0), sn0, cn0, kb, kc),
+        u0=u0,
+        e=e,
+        moments=moments,
+        ea=ea,
+        eb=eb,
+        ec=ec,
+        left=_quaternion.multiply(q0, _quaternion.conjugate(p0)),
         agm=agm_of_m,
     )
 
@@ -206,9 +275,8 @@ def _chi(phi: Array, sn: Array, cn: Array, kb: Array, kc: Array) -> Array:
 
 def _state_at(k: _Motion, t: Array) -> tuple[Array, Array]:
     """The elliptic solution at times ``t`` from the per-body part ``k`` (broadcast against ``t``)."""
-    m, mc, lam, amp_a, r_cb, g, sigma, s, wb_hat, abs_wa, dn0, wc, sn0, cn0, ell, nu, kb, kc, ia, ic = k.scalars[:20]
-    pi_full, pi0, chi0, u0 = k.scalars[20:]
-    e, moments, ea, eb, ec = k.vectors
+    m, mc, lam, s, sigma, ell, ia, ic = k.m, k.mc, k.lam, k.s, k.sigma, k.ell, k.ia, k.ic
+    r_cb, wb_hat, wc, sn0, cn0, dn0 = k.r_cb, k.wb_hat, k.wc, k.sn0, k.cn0, k.dn0
     # Angular velocity by the addition theorems in v = lambda t (smooth at a pure spin about a).
     # den = 1 - m sn0^2 sn_v^2, written as a sum of non-negative terms: near a spin about
     # the middle axis both products tend to 1 and the difference lost eps / den (1.5e-3
@@ -217,8 +285,8 @@ def _state_at(k: _Motion, t: Array) -> tuple[Array, Array]:
     den = cn0 * cn0 + sn0 * sn0 * dn_v * dn_v
     wc_t = (wc * cn_v - r_cb * wb_hat * dn0 * sn_v * dn_v) / den
     wb_hat_t = (wb_hat * cn_v * dn_v + wc * dn0 * sn_v / r_cb) / den
-    abs_wa_t = (abs_wa * dn_v - g * amp_a * wb_hat * wc * sn_v * cn_v / r_cb) / den
-    w_t = (s * abs_wa_t)[..., None] * ea + (-sigma * s * wb_hat_t)[..., None] * eb + wc_t[..., None] * ec
+    abs_wa_t = (k.abs_wa * dn_v - k.g * k.amp_a * wb_hat * wc * sn_v * cn_v / r_cb) / den
+    w_t = (s * abs_wa_t)[..., None] * k.ea + (-sigma * s * wb_hat_t)[..., None] * k.eb + wc_t[..., None] * k.ec
 
     # Precession angle about the angular momentum; the amplitude at t again as (sn, cn) from the
     # rates, the unwrapped amplitude only supplying the whole number of turns.
@@ -226,18 +294,18 @@ def _state_at(k: _Motion, t: Array) -> tuple[Array, Array]:
     theta_t = _trig.atan2(snt, cnt)
     ht, st, ct = reduced_amplitude(snt, cnt)
     sg = jax.lax.stop_gradient
-    turns = jnp.round(sg(amplitude(u0 + lam * t, *k.agm) - theta_t) / (2 * jnp.pi))
-    _, pi_part = legendre(st, ct * ct, partial_y(ct, m, mc), -nu)
-    pi_t = 2 * (2 * turns + ht) * pi_full + pi_part
+    turns = jnp.round(sg(amplitude(k.u0 + lam * t, *k.agm) - theta_t) / (2 * jnp.pi))
+    _, pi_part = legendre(st, ct * ct, partial_y(ct, m, mc), -k.nu)
+    pi_t = 2 * (2 * turns + ht) * k.pi_full + pi_part
     psi = (
         ell * t / ia
-        + ell * (ia - ic) / (ia * ic * lam) * (pi_t - pi0)
-        + jnp.sign(ic - ia) * (_chi(2 * jnp.pi * turns + theta_t, snt, cnt, kb, kc) - chi0)
+        + ell * (ia - ic) / (ia * ic * lam) * (pi_t - k.pi0)
+        + jnp.sign(ic - ia) * (_chi(2 * jnp.pi * turns + theta_t, snt, cnt, k.kb, k.kc) - k.chi0)
     )
-    p_t = _rotation.minimal_rotation(e, moments * w_t / ell[..., None])
+    p_t = _rotation.minimal_rotation(k.e, k.moments * w_t / ell[..., None])
     sin_half, cos_half = _trig.sincos(psi / 2)
-    r = _quaternion.scalar_vector(cos_half, e, sin_half)
-    return _quaternion.multiply(_quaternion.multiply(k.quaternions[0], r), p_t), w_t
+    r = _quaternion.scalar_vector(cos_half, k.e, sin_half)
+    return _quaternion.multiply(_quaternion.multiply(k.left, r), p_t), w_t
 
 
 def _unit_pair(y: Array, x: Array) -> tuple[Array, Array]:
@@ -262,19 +330,9 @@ def propagate(q0: Array, omega0: Array, moments: Array, t: Array) -> tuple[Array
     bodies x 101 saved times, this 2-core CPU): a call 31-39 ms against 96-99 ms in float32, 60
     against 207 ms in float64 (the loops of the AGM and of one Carlson evaluation run per body;
     ``docs/benchmarks.md``)."""
-    extra = t.ndim - (q0.ndim - 1)
+    times = (None,) * (t.ndim - (q0.ndim - 1))
     general, safe_w, safe_i, roles = _safe_state(moments, omega0)
-    k = _motion(q0, safe_w, safe_i, *roles)
-    times = (None,) * extra
-    # Broadcast once to the times' shape, so reverse mode sums each per-body cotangent over the
-    # times once, not at every use.
-    k = _Motion(
-        tuple(jnp.broadcast_to(x[(..., *times)], t.shape) for x in k.scalars),
-        tuple(jnp.broadcast_to(x[(..., *times, slice(None))], t.shape + x.shape[-1:]) for x in k.vectors),
-        tuple(jnp.broadcast_to(x[(..., *times, slice(None))], t.shape + x.shape[-1:]) for x in k.quaternions),
-        (k.agm[0][(..., *times)], k.agm[1][(..., *times)]),
-    )
-    q_gen, w_gen = _state_at(k, t)
+    q_gen, w_gen = _state_at(_motion(q0, safe_w, safe_i, *roles).at_times(t), t)
     q0, omega0, general = q0[(..., *times, slice(None))], omega0[(..., *times, slice(None))], general[(..., *times)]
     q_steady = _quaternion.multiply(q0, _rotation.from_rotvec(omega0 * t[..., None]))
     return (
