@@ -294,28 +294,6 @@ def reduced_amplitude(sn: Array, cn: Array) -> tuple[Array, Array, Array]:
     return h, jnp.where(back, -sn, sn), jnp.abs(cn)
 
 
-def incomplete(j: Array, s: Array, c: Array, m: Array, mc: Array, n: Array) -> tuple[Array, Array]:
-    """``F(phi | m)`` and ``Pi(n; phi | m)`` at the unwrapped amplitude ``phi = j pi + r``.
-
-    The amplitude comes as the integer ``j`` and ``sin r = s``, ``cos r = c >= 0``
-    (``|r| <= pi/2``), each shaped ``(k, *batch)`` (``k`` amplitudes sharing ``m, n``
-    of shape ``batch``): ``F = 2 j K + F(r)``, likewise ``Pi``; ``n <= 0``. Taking
-    ``sin r`` and ``cos r`` rather than ``r`` keeps full relative precision in
-    ``cos r`` near ``r = +-pi/2``, where ``1 - m sin^2 r`` is small as ``m -> 1`` and an
-    angle would lose ``eps / cos r``. The ``k`` partial integrals and the complete ones
-    go through one Carlson evaluation (:func:`legendre`); the complete ones are replaced
-    by a safe dummy for batch elements where every ``j`` is 0 (so that ``m = 1`` has
-    finite derivatives).
-    """
-    whole = jnp.any(j != 0, axis=0, keepdims=True)
-    m, mc, n = m[None], mc[None], n[None]
-    # Rows 0..k-1: the partial integrals at r; last row: the complete ones.
-    x = jnp.concatenate([c * c, jnp.broadcast_to(tiny(c), c[:1].shape)])
-    y = jnp.concatenate([partial_y(c, m, mc), jnp.broadcast_to(complete_y(mc, whole), c[:1].shape)])
-    f, pi = legendre(jnp.concatenate([s, jnp.ones_like(s[:1])]), x, y, n)
-    return 2 * j * f[-1:] + f[:-1], 2 * j * pi[-1:] + pi[:-1]
-
-
 def legendre(s: Array, x: Array, y: Array, n: Array) -> tuple[Array, Array]:
     """``F(r | m) = s R_F(x, y, 1)`` and ``Pi(n; r | m) = F + n/3 s^3 R_J(x, y, 1, 1 - n s^2)``
     for ``|r| <= pi/2``, ``s = sin r``, ``x = cos^2 r`` and ``y = 1 - m sin^2 r`` (one :func:`carlson`
