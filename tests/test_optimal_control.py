@@ -182,6 +182,52 @@ def test_the_inertia_correction_keeps_a_definite_spectrum_and_bounds_an_indefini
     np.testing.assert_array_equal(out, np.maximum(np.abs(ev), np.maximum(1e-8, worst)))
 
 
+def _spectrum_matrix(rng, ev):
+    """A symmetric matrix with eigenvalues ``ev`` and random eigenvectors."""
+    q, _ = np.linalg.qr(rng.normal(size=(len(ev), len(ev))))
+    return (q * ev) @ q.T
+
+
+def test_the_reduced_newton_step_is_the_corrected_one_by_cholesky_or_by_the_eigendecomposition():
+    """``_corrected_solve`` (Cholesky where the correction changes nothing, the eigendecomposition
+    elsewhere) against the corrected step formed here by NumPy's ``eigh``: well-conditioned
+    definite matrices (Cholesky), one eigenvalue below the floor, indefinite ones (the
+    decomposition); alone, and side by side (``vmap``) with no member, a few members (each
+    decomposed on its own) and many members (the whole batch decomposed) failing the test."""
+    from jaxquat.control.interior_point import _cholesky_solve, _corrected_solve
+
+    dtype = jnp.float64 if X64 else jnp.float32
+    eps = np.finfo(np.dtype(dtype)).eps
+    rng = np.random.default_rng(1)
+    n = 12
+    definite = [np.geomspace(0.1, 100.0, n)] * 12
+    tiny = [np.concatenate([[1e-12], np.geomspace(0.1, 100.0, n - 1)])] * 2
+    indefinite = [np.concatenate([[-0.5], np.geomspace(0.1, 100.0, n - 1)])] * 2
+    spectra = np.array(definite + tiny + indefinite)  # 16: the last four fail the test
+    H = np.array([_spectrum_matrix(rng, ev) for ev in spectra])
+    rhs = rng.normal(size=(16, n))
+
+    def reference(h, r):
+        ev, vec = np.linalg.eigh(h)
+        floor = max(1e-8, 100 * eps * np.max(np.abs(ev)))
+        fixed = np.maximum(np.abs(ev), max(floor, -min(ev.min(), 0.0)))
+        return vec @ ((vec.T @ r) / fixed)
+
+    want = np.array([reference(h, r) for h, r in zip(H, rhs)])
+    Hj, rj = jnp.asarray(H, dtype), jnp.asarray(rhs, dtype)
+    _, ok = jax.vmap(jax.jit(_cholesky_solve))(Hj, rj)
+    np.testing.assert_array_equal(np.asarray(ok), [True] * 12 + [False] * 4)
+    rtol = 1e-9 if X64 else 2e-3
+    one = jax.jit(_corrected_solve)
+    for i in (0, 12, 14):  # Cholesky; the floor; indefinite
+        np.testing.assert_allclose(np.asarray(one(Hj[i], rj[i])), want[i], rtol=rtol, atol=rtol * np.abs(want[i]).max())
+    batched = jax.jit(jax.vmap(_corrected_solve))
+    for rows in (range(12), [0, 1, 2, 3, 4, 5, 6, 12], list(range(16))):  # none, 1 of 8, 4 of 16 (> 16/8) fail
+        rows = np.array(rows)
+        got = np.asarray(batched(Hj[rows], rj[rows]))
+        np.testing.assert_allclose(got, want[rows], rtol=rtol, atol=rtol * np.abs(want[rows]).max())
+
+
 def test_bilimoria_wie_at_sixty_intervals_from_one_start_converges_without_a_jam():
     """The eigenaxis start of Bilimoria & Wie's slew sits near a saddle, where the reduced Hessian
     is indefinite. With negative eigenvalues only flipped to their magnitudes, the near-zero ones
