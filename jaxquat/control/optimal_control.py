@@ -17,9 +17,10 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import Array
 from jaxtyping import ArrayLike, Float
 
-from .. import _checks
+from .. import _arrays, _checks
 from ..manifold.lie import minus
 from ..mechanics.inertia import validated
 from . import controlled_model, transcription
@@ -255,7 +256,10 @@ def check_resolution(T, q0, qf, w0, wf, intervals: int, substeps: int, widest: f
     if any(v is None for v in values):
         return
     T, q0, qf, w0, wf = (np.asarray(v, np.float64) for v in values)
-    theta = np.linalg.norm(np.asarray(minus(jnp.asarray(qf), jnp.asarray(q0))), axis=-1)
+    # the angle of q0* qf, in NumPy (these are concrete values: no compilation)
+    dot = np.abs(np.sum(q0 * qf, axis=-1))
+    cross = qf[..., 1:] * q0[..., :1] - q0[..., 1:] * qf[..., :1] - np.cross(q0[..., 1:], qf[..., 1:])
+    theta = 2 * np.arctan2(np.linalg.norm(cross, axis=-1), dot)
     peak = np.where(T > 0, 2 * theta / np.where(T > 0, T, 1.0), 0.0)  # T = 0: already there, at rest
     rate = np.maximum(np.maximum(np.linalg.norm(w0, axis=-1), np.linalg.norm(wf, axis=-1)), peak)
     rate, T = np.broadcast_arrays(rate, T)
@@ -287,8 +291,17 @@ def _prepare(inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out
     q0 = _checks.quat(q0, "q0")
     qf = _checks.quat(qf, "qf")
     dtype = q0.dtype
-    w0 = jnp.zeros(3, dtype) if omega0 is None else _checks.vec3(omega0, "omega0")
-    wf = jnp.zeros(3, dtype) if omegaf is None else _checks.vec3(omegaf, "omegaf")
+    w0 = None if omega0 is None else _checks.vec3(omega0, "omega0")
+    wf = None if omegaf is None else _checks.vec3(omegaf, "omegaf")
+    # rest at the batch shape of the others, made in NumPy: jnp.zeros and its broadcast would be
+    # eager compilations of their own (the batch shape checked by broadcast_batch below)
+    try:
+        batch = np.broadcast_shapes(*(a.shape[:-1] for a in (q0, qf, w0, wf) if a is not None))
+    except ValueError:
+        batch = ()  # broadcast_batch names the arguments
+    rest = jax.device_put(np.zeros(batch + (3,), dtype))
+    w0 = rest if w0 is None else w0
+    wf = rest if wf is None else wf
     q0, qf, w0, wf = _checks.broadcast_batch([q0, qf, w0, wf], ["q0", "qf", "omega0", "omegaf"], [1, 1, 1, 1])
     for name, x in (("q0", q0), ("qf", qf), ("omega0", w0), ("omegaf", wf)):
         c = _checks.concrete(x)
@@ -307,9 +320,12 @@ def _prepare(inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out
         if not (rate_bound > 0 and np.isfinite(rate_bound)):
             raise ValueError(f"argument 'rate_bound' must be a positive finite float, got {rate_bound}")
     cones = _cones(keep_out, keep_in, np.dtype(dtype))
-    q0 = q0 / jnp.linalg.norm(q0, axis=-1, keepdims=True)
-    qf = qf / jnp.linalg.norm(qf, axis=-1, keepdims=True)
+    q0, qf = _arrays.compiled(_units, q0, qf)
     return jnp.asarray(inertia, dtype), q0, qf, w0, wf, bound, rate_bound, cones
+
+
+def _units(q0: Array, qf: Array) -> tuple[Array, Array]:
+    return q0 / jnp.linalg.norm(q0, axis=-1, keepdims=True), qf / jnp.linalg.norm(qf, axis=-1, keepdims=True)
 
 
 def _wheels(wheels, dtype) -> tuple | None:
@@ -355,22 +371,62 @@ def _run(
     tol, max_iter, throw, starts, seed, init = options
     widest = None if fractions is None else float(np.max(fractions))
     check_resolution(duration, q0, qf, w0, wf, cfg.intervals, cfg.substeps, widest)
-    dtype = q0.dtype
     batch = q0.shape[:-1]
-    inf = jnp.asarray(jnp.inf, dtype)
-    args = final = None
+    args = final = bound = scale = None
     if model is not None:  # the extra states z in the wheel momenta's places
-        axes, h0, args, final = jnp.zeros((0, 3), dtype), model.z0, model.args, model.final
-        h_bound = inf * jnp.ones_like(h0) if model.bound is None else model.bound
-        h_ref = jnp.full_like(w_ref, model.scale)
-    elif wheels is None:
+        axes, h0, args, final, bound, scale = None, model.z0, model.args, model.final, model.bound, model.scale
+    elif wheels is not None:
+        axes, _, bound, h0 = wheels
+    else:
+        axes = h0 = None
+    extra = (axes, h0, bound, scale, args, final)
+    boundary = (inertia, q0, qf, w0, wf, duration, u_ref, w_ref)
+    data = _arrays.compiled(_data, boundary, rate_bound, cones, weights, fractions, extra, cfg=cfg)
+    keys = _arrays.compiled(_keys, seed=seed, starts=starts)
+    out = solve(data, cfg, tol, np.int32(max_iter), keys, init, batch=batch)
+    if throw and not _checks.is_traced(out.violation):
+        bad = ~np.asarray(out.converged)
+        if np.any(bad):
+            raise RuntimeError(
+                "optimal reorientation: the interior-point method did not converge"
+                f" for {int(bad.sum())} of {bad.size} problems (largest KKT residual "
+                f"{float(np.max(np.asarray(out.kkt_residual)[bad])):.3g}, violation "
+                f"{float(np.max(np.asarray(out.violation)[bad])):.3g}). Try more intervals, max_iter, or a smaller "
+                "tol; check that the constraints admit a solution. Pass throw=False to get the last iterate."
+                + _redundancy_hint(cfg, data, out, int(np.flatnonzero(bad.ravel())[0]))
+            )
+    return out
+
+
+def _keys(*, seed: int, starts: int) -> Array:
+    """The random keys of the starts (start 0 does not use its own)."""
+    return jax.vmap(lambda k: jax.random.fold_in(jax.random.PRNGKey(seed), k))(jnp.arange(starts))
+
+
+def _data(boundary, rate_bound, cones, weights, fractions, extra, *, cfg: Config) -> Data:
+    """The solver's :class:`Data`, flat over the batch (leading axis ``B``): ``boundary`` the
+    ``(inertia, q0, qf, w0, wf, duration, u_ref, w_ref)`` (batch axes ``batch``), ``extra`` the
+    ``(axes, h0, bound, scale, args, final)`` of the wheels (``scale`` None) or of a user model
+    (``axes`` None), or all None for the torqued body. Compiled as one program
+    (:func:`jaxquat._arrays.compiled`): formed eagerly it was 30-40 single-operation
+    compilations on a first call (0.9 s of the 7.6 s to the first result of the suite's
+    12-interval slew, 8 starts, this 2-core CPU)."""
+    inertia, q0, qf, w0, wf, duration, u_ref, w_ref = boundary
+    axes, h0, h_bound, scale, args, final = extra
+    dtype = q0.dtype
+    inf = jnp.asarray(jnp.inf, dtype)
+    if scale is not None:  # a user model: its z in the wheel momenta's places
+        axes = jnp.zeros((0, 3), dtype)
+        h_bound = inf * jnp.ones_like(h0) if h_bound is None else h_bound
+        h_ref = jnp.full_like(w_ref, scale)
+    elif axes is None:  # the torqued body
         axes, h0, h_bound = jnp.zeros((0, 3), dtype), jnp.zeros((0,), dtype), jnp.zeros((0,), dtype)
         h_ref = jnp.ones_like(w_ref)
     else:
-        axes, _, h_bound, h0 = wheels
         h_bound = inf * jnp.ones_like(h0) if h_bound is None else h_bound
         # the momentum the body takes at the reference rate, or the wheels' own, whichever is larger
         h_ref = jnp.maximum(jnp.max(jnp.abs(inertia)) * w_ref, jnp.max(jnp.abs(h0)))
+    batch = q0.shape[:-1]
 
     def data_of(q0_, qf_, w0_, wf_, dur, ur, wr, hr):
         return Data(
@@ -398,22 +454,7 @@ def _run(
     # Strongly typed leaves: a weak-typed one (e.g. a bound broadcast from a Python float) is
     # another cache key for the jitted solver, and retraced and recompiled it (18 s for the
     # suite's 10-interval problem, whose bound came once as an array and once as a list).
-    data = jax.tree.map(lambda a: jnp.asarray(a, a.dtype), jax.vmap(data_of)(*flat))
-    keys = jax.vmap(lambda k: jax.random.fold_in(jax.random.PRNGKey(seed), k))(jnp.arange(starts))
-    out = solve(data, cfg, tol, jnp.asarray(max_iter, jnp.int32), keys, init)
-    out = jax.tree.map(lambda a: jnp.reshape(a, batch + a.shape[1:]), out)
-    if throw and not _checks.is_traced(out.violation):
-        bad = ~np.asarray(out.converged)
-        if np.any(bad):
-            raise RuntimeError(
-                "optimal reorientation: the interior-point method did not converge"
-                f" for {int(bad.sum())} of {bad.size} problems (largest KKT residual "
-                f"{float(np.max(np.asarray(out.kkt_residual)[bad])):.3g}, violation "
-                f"{float(np.max(np.asarray(out.violation)[bad])):.3g}). Try more intervals, max_iter, or a smaller "
-                "tol; check that the constraints admit a solution. Pass throw=False to get the last iterate."
-                + _redundancy_hint(cfg, data, out, int(np.flatnonzero(bad.ravel())[0]))
-            )
-    return out
+    return jax.tree.map(lambda a: jnp.asarray(a, a.dtype), jax.vmap(data_of)(*flat))
 
 
 def _redundancy_hint(cfg, data, out, i: int) -> str:
@@ -434,7 +475,12 @@ def _redundancy_hint(cfg, data, out, i: int) -> str:
 
 
 def scales(inertia, q0, qf, w0, wf, duration_or_bound, min_time: bool):
-    """Per-problem time, torque and rate scales from the eigenaxis profile."""
+    """Per-problem time, torque and rate scales from the eigenaxis profile (one compiled program,
+    :func:`jaxquat._arrays.compiled`: eagerly it was 24 single-operation compilations)."""
+    return _arrays.compiled(_scales, inertia, q0, qf, w0, wf, duration_or_bound, min_time=min_time)
+
+
+def _scales(inertia, q0, qf, w0, wf, duration_or_bound, *, min_time: bool):
     theta = jnp.linalg.norm(minus(qf, q0), axis=-1)
     axis = minus(qf, q0) / jnp.maximum(theta, 1e-12)[..., None]
     axis = jnp.where(theta[..., None] > 1e-12, axis, jnp.asarray([1.0, 0.0, 0.0], q0.dtype))

@@ -479,9 +479,11 @@ def _start(cfg: Config, data: Data, init):
 _REVERSE_HESSIAN_PAIRS = 16  # (problem, start) pairs from which the batch uses hessian="reverse"
 
 
-def solve(data: Data, cfg: Config, tol, max_iter, keys, init=None):
-    """:func:`_solve`, jitted (``cfg`` static) by :func:`solver_jit`."""
-    return solver_jit(_solve, ("cfg",))(data, cfg, tol, max_iter, keys, init)
+def solve(data: Data, cfg: Config, tol, max_iter, keys, init=None, batch: tuple[int, ...] | None = None):
+    """:func:`_solve`, jitted (``cfg`` and ``batch`` static) by :func:`solver_jit`; ``batch``: the
+    problems' batch shape, given to the results' leading axis inside the program (eager reshapes
+    compiled one program per result field on a first call), or None to keep the flat axis."""
+    return solver_jit(_solve, ("cfg", "batch"))(data, cfg, tol, max_iter, keys, init, batch)
 
 
 @functools.cache
@@ -532,14 +534,14 @@ def _solver_compiler_options() -> dict[str, Any] | None:
         pass
     for options in candidates:
         try:
-            jax.jit(lambda x: x + 1, compiler_options=options).lower(jnp.zeros(())).compile()
+            jax.jit(lambda x: x + 1, compiler_options=options).lower(np.zeros(())).compile()
         except Exception:  # an XLA that does not know an option, or a jit without compiler_options
             continue
         return options
     return None
 
 
-def _solve(data: Data, cfg: Config, tol, max_iter, keys, init=None):
+def _solve(data: Data, cfg: Config, tol, max_iter, keys, init=None, batch: tuple[int, ...] | None = None):
     """A batch of problems (``data`` with a leading axis ``B``), every start of each (one per row
     of ``keys``) solved side by side, then each problem's best start: the least cost among the
     converged starts (the least KKT residual if none converged). Start 0 is the eigenaxis guess
@@ -576,7 +578,8 @@ def _solve(data: Data, cfg: Config, tol, max_iter, keys, init=None):
     first = jnp.tile(jnp.arange(S) == 0, B)
     flat = _batched(one, *jax.tree.map(pairs, (data, X, V, p)), jnp.tile(keys, (B, 1)), first)
     sols = jax.tree.map(lambda a: jnp.reshape(a, (B, S) + a.shape[1:]), flat)
-    return _batched(lambda d, s: _best(cfg, d, s), data, sols)
+    out = _batched(lambda d, s: _best(cfg, d, s), data, sols)
+    return out if batch is None else jax.tree.map(lambda a: jnp.reshape(a, batch + a.shape[1:]), out)
 
 
 def _batched(f, *args):
