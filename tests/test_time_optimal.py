@@ -140,6 +140,19 @@ def test_single_axis_authority_gives_the_eigenaxis_bang_bang_time(symmetric_180_
     np.testing.assert_allclose(u, np.where(np.arange(10) < 5, 1.0, -1.0), atol=1e-6)
 
 
+def test_a_scalar_torque_bound_bounds_every_axis(symmetric_180, symmetric_180_ip):
+    """``torque_bound=1.0`` is ``(1, 1, 1)`` for both methods (Bilimoria and Wie's ``|u_i| <= 1``):
+    the same solves, so the same times to the bit; a bound of another shape still names the
+    argument."""
+    qf = [0.0, 1.0, 0.0, 0.0]
+    ip = jq.minimum_time_reorientation(np.eye(3), 1.0, Q0, qf, intervals=10)
+    np.testing.assert_array_equal(np.asarray(ip.time), np.asarray(symmetric_180_ip.time))
+    shooting = jq.minimum_time_reorientation(np.eye(3), 1, Q0, qf, **FAST)
+    np.testing.assert_array_equal(np.asarray(shooting.time), np.asarray(symmetric_180.time))
+    with pytest.raises(ValueError, match=r"'torque_bound' .*\(\.\.\., 3\)"):
+        jq.minimum_time_reorientation(np.eye(3), np.ones(2), Q0, qf, intervals=10)
+
+
 def test_both_methods_reach_the_same_bilimoria_wie_optimum(symmetric_180, symmetric_180_ip):
     """The 10-interval problem has KKT points at 3.2596 and 3.2765; the default's 8 starts and
     single shooting's 4 both return the lower one, and the two solvers (torque ``b sin(p)``

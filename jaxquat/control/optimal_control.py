@@ -311,7 +311,7 @@ def _prepare(inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out
             raise ValueError(f"argument '{name}' must be finite, got {c}")
     bound = None
     if torque_bound is not None:
-        bound = _checks.vec3(torque_bound, "torque_bound")
+        bound = per_axis_bound(torque_bound)
         c = _checks.concrete(bound)
         if bound.ndim != 1 or (c is not None and not (np.all(c > 0) and np.all(np.isfinite(c)))):
             raise ValueError(f"argument 'torque_bound' must be positive and finite, shaped (3,), got {c}")
@@ -322,6 +322,16 @@ def _prepare(inertia, q0, qf, omega0, omegaf, torque_bound, rate_bound, keep_out
     cones = _cones(keep_out, keep_in, np.dtype(dtype))
     q0, qf = _arrays.compiled(_units, q0, qf)
     return jnp.asarray(inertia, dtype), q0, qf, w0, wf, bound, rate_bound, cones
+
+
+def per_axis_bound(torque_bound) -> Array:
+    """The body torque bound as ``(3,)``: a scalar bounds all three axes alike (Bilimoria and Wie's
+    ``|u_i| <= 1``), a 3-vector each its own; checked as a 3-vector array (shape errors name
+    ``torque_bound``)."""
+    if np.ndim(torque_bound) == 0 and not isinstance(torque_bound, (str, bytes)):
+        c = _checks.concrete(torque_bound)
+        torque_bound = np.full(3, c, np.result_type(c, np.float32)) if c is not None else jnp.full(3, torque_bound)
+    return _checks.vec3(torque_bound, "torque_bound")
 
 
 def _units(q0: Array, qf: Array) -> tuple[Array, Array]:
@@ -556,7 +566,8 @@ def optimal_reorientation(
         time_weight: weight of ``T`` (free final time only).
         energy_weight: weight of ``int |u|^2 dt``.
         fuel_weight: weight of ``int sum_i |u_i| dt`` (needs ``torque_bound``).
-        torque_bound: per-axis body torque bound ``(3,)``, or ``None``.
+        torque_bound: per-axis body torque bound ``(3,)`` (a scalar: the same on each axis), or
+            ``None``.
         rate_bound: ``|w_i| <= rate_bound`` at every integration step, or ``None``.
         keep_out: ``(body_axis (3,), inertial_direction (3,), half_angle_rad)`` cones the body
             axis's inertial image stays out of, at every integration step; with a ``model``
@@ -813,7 +824,8 @@ def minimum_energy_reorientation(
         duration: the fixed final time ``T``.
         omega0: initial body rate ``(..., 3)``; default rest.
         omegaf: final body rate ``(..., 3)``; default rest.
-        torque_bound: per-axis body torque bound ``(3,)``, or ``None``.
+        torque_bound: per-axis body torque bound ``(3,)`` (a scalar: the same on each axis), or
+            ``None``.
         rate_bound: ``|w_i| <= rate_bound`` at every integration step, or ``None``.
         keep_out: ``(body_axis (3,), inertial_direction (3,), half_angle_rad)`` cones (a fourth
             entry ``j >= 1`` puts one on a ``model``'s ``j``-th extra quaternion instead, as in

@@ -71,6 +71,7 @@ from .optimal_control import (
     check_resolution,
     check_starts,
     constrained_minimum_time,
+    per_axis_bound,
 )
 from .controlled_model import ControlledModel
 from .transcription import ConstrainedReorientation, held_torque_states, solver_jit
@@ -378,7 +379,8 @@ def minimum_time_reorientation(
 
     Args:
         inertia: body inertia tensor ``(3, 3)``.
-        torque_bound: per-axis body torque bound ``(3,)``, positive.
+        torque_bound: per-axis body torque bound ``(3,)``, positive (a scalar: the same on each
+            axis).
         q0: initial attitude ``(..., 4)`` (normalised; leading axes: a batch, interior point only).
         qf: target attitude ``(..., 4)`` (either sign).
         omega0: initial body rate ``(..., 3)``; default rest.
@@ -456,7 +458,7 @@ def minimum_time_reorientation(
     inertia = validated(inertia)
     if inertia.shape != (3, 3):
         raise ValueError(f"argument 'inertia' must be shaped (3, 3), got shape {tuple(inertia.shape)}")
-    bound = _checks.vec3(torque_bound, "torque_bound")
+    bound = per_axis_bound(torque_bound)
     q0 = _checks.quat(q0, "q0")
     qf = _checks.quat(qf, "qf")
     for name, x in (("torque_bound", bound), ("q0", q0), ("qf", qf)):
