@@ -228,6 +228,33 @@ def test_the_reduced_newton_step_is_the_corrected_one_by_cholesky_or_by_the_eige
         np.testing.assert_allclose(got, want[rows], rtol=rtol, atol=rtol * np.abs(want[rows]).max())
 
 
+def test_the_solvers_run_lapack_on_one_thread_and_restore_the_caller_s_count():
+    """An eager call of a solver's program (``transcription.solver_jit``) runs with LAPACK's BLAS
+    on one thread (the same iterates on any machine) and gives the caller back its own count;
+    inside a caller's ``jit`` it is traced like any function."""
+    import threadpoolctl
+
+    from jaxquat.control.transcription import solver_jit
+
+    def blas_threads():
+        return max(i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas")
+
+    seen = []
+
+    def program(x):
+        jax.debug.callback(lambda: seen.append(blas_threads()))
+        return jnp.linalg.eigh(x)[0]
+
+    x = jnp.diag(jnp.arange(1.0, 5.0))
+    with threadpoolctl.threadpool_limits(limits=2, user_api="blas"):
+        before = blas_threads()
+        values = solver_jit(program)(x)
+        after = blas_threads()
+    assert seen == [1] and before == after == 2
+    np.testing.assert_allclose(np.asarray(values), [1.0, 2.0, 3.0, 4.0])
+    np.testing.assert_allclose(np.asarray(jax.jit(lambda y: solver_jit(program)(2 * y))(x)), [2.0, 4.0, 6.0, 8.0])
+
+
 def test_bilimoria_wie_at_sixty_intervals_from_one_start_converges_without_a_jam():
     """The eigenaxis start of Bilimoria & Wie's slew sits near a saddle, where the reduced Hessian
     is indefinite. With negative eigenvalues only flipped to their magnitudes, the near-zero ones

@@ -36,9 +36,10 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+import threadpoolctl
 from jax import Array
 
-from .. import _arrays, _quaternion
+from .. import _arrays, _checks, _quaternion
 from ..integration.fixed_step import solve_fixed_steps
 from ..integration.lie_solvers import RKMK4, BodyRateTerm, body_rate
 from ..manifold.lie import minus, plus
@@ -491,8 +492,40 @@ def solver_jit(fn, static_argnames: tuple[str, ...] = ()):
     """``jax.jit(fn)`` with :func:`_solver_compiler_options`, made on first use (the options are
     probed by a compile, which ``import jaxquat`` must not wait for) and kept: the jit of the
     package's solver programs, each large and run once per call (this multiple-shooting solver,
-    the single-shooting one of :mod:`jaxquat.control.time_optimal`)."""
-    return jax.jit(fn, static_argnames=static_argnames, compiler_options=_solver_compiler_options())
+    the single-shooting one of :mod:`jaxquat.control.time_optimal`). Called eagerly on the CPU,
+    the program runs with LAPACK on one thread (:func:`_one_lapack_thread`) and the call returns
+    when it has finished. Inside a caller's ``jit``, ``vmap`` or ``grad`` it is a plain nested
+    ``jit``: XLA takes compiler options only for a top-level program (the solvers raised a
+    ``ValueError`` under a user's ``jit`` before session 33)."""
+    jitted = jax.jit(fn, static_argnames=static_argnames, compiler_options=_solver_compiler_options())
+    nested = jax.jit(fn, static_argnames=static_argnames)
+
+    @functools.wraps(fn)
+    def run(*args, **kwargs):
+        if any(_checks.is_traced(x) for x in jax.tree.leaves((args, kwargs))):
+            return nested(*args, **kwargs)
+        if jax.default_backend() != "cpu":
+            return jitted(*args, **kwargs)
+        with _one_lapack_thread():
+            return jax.block_until_ready(jitted(*args, **kwargs))
+
+    return run
+
+
+def _one_lapack_thread():
+    """``threadpoolctl.threadpool_limits(1)`` for the BLAS libraries loaded (OpenBLAS: jaxlib's
+    CPU LAPACK kernels, ``eigh``, QR, Cholesky, come from scipy's), for the solvers' programs.
+
+    Why: the thread count changes LAPACK's rounding, so the iterates (before session 28, the
+    iteration count of the suite's wheel slew: 169 on two threads, 177 on one); on one thread
+    every machine computes the same ones. And the solves ran slower on two: OpenBLAS's idle
+    workers wait by spinning (its default), the likely cause, taking a core from XLA's threads
+    between the LAPACK calls of the small systems here. Measured (float64, one start, this
+    2-core EPYC, OpenBLAS's default of two threads against this; best of three after the first
+    call): Bilimoria-Wie at 80 intervals 0.91-0.95 s against 0.61 s, Betts asyq01 at 120
+    0.73 s against 0.49 s, the 100 slews of 40 intervals in one call 9.95 s against 8.37 s; the
+    same iterations and times."""
+    return threadpoolctl.threadpool_limits(limits=1, user_api="blas")
 
 
 @functools.cache
