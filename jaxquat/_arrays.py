@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import functools
 import operator
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -203,10 +204,10 @@ def _jit(fn, static_argnames: tuple[str, ...], cpu: bool):
     return jax.jit(body, static_argnames=static_argnames)
 
 
-def compiled(fn, *arrays: Array | None, **static):
+def compiled(fn, *arrays: Any, **static):
     """``fn(*arrays, **static)`` as one compiled program: ``jax.jit`` of the module-level ``fn``
-    (``static`` its static keyword arguments: strings, flags; an array may be ``None``, an empty
-    argument), made on first use and kept.
+    (``static`` its static keyword arguments: strings, flags; an argument may be ``None``, an
+    empty argument, or a pytree of arrays), made on first use and kept.
 
     The public functions call their bodies through this after their argument checks. Called
     eagerly (a notebook cell, a script), a body otherwise runs as single operations, each
