@@ -328,8 +328,9 @@ def test_a_first_solve_compiles_its_preparation_as_a_few_programs(free_energy):
     data, the starts' keys) and its results' batch shape are compiled programs, not one
     compilation per operation: the fixture's call (a first call with its shapes in this worker,
     unless an earlier test made the same) lowers at most six programs (those four, the solver,
-    the probe of the solver's compiler options). Measured: 58 besides the solver before session
-    33 (0.7-0.9 s of a first call's 7.6 s on the suite's 12-interval slew, this 2-core CPU)."""
+    the probe of the solver's compiler options). Before session 33 this call lowered 48 (58 on
+    the suite's 12-interval minimum-time slew, 0.7-0.9 s of its first call's 7.6-7.8 s on this
+    2-core CPU)."""
     assert free_energy.converged.shape == (2,)
     assert len(_FIRST_CALL_LOWERED) <= 6, _FIRST_CALL_LOWERED
 
