@@ -155,6 +155,46 @@ def test_no_trial_beyond_theta_max_is_accepted_however_far_the_objective_falls()
     np.testing.assert_allclose((u[0] - 24.0) / np.cosh(u[0]), u[1] / np.cosh(u[1]), atol=1e-8)
 
 
+def test_three_failed_line_searches_in_a_row_reset_the_nodes_to_the_rollout_of_the_controls(monkeypatch):
+    """With ``theta_max = 0`` no trial is ever acceptable, so each iteration takes the shortest
+    trial; after the third such iteration in a row the nodes are reset to the rollout of the
+    controls from ``x_0`` (``x_{k+1} = x_k + sinh(u_k)``, evaluated here independently): no
+    continuity defect is left. After two the defects of the starting nodes (0.5 and 0.2) are
+    still there. The one-start three-wheel slew at 40 intervals, which stalled at ``max_iter``
+    with every trial rejected before this reset, converges in 60 iterations (measured, float64;
+    not run here: a configuration of its own to compile, 8 s)."""
+    from jaxquat.control import interior_point
+
+    monkeypatch.setattr(interior_point, "_THETA_MAX", 0.0)
+
+    def stage(x, u, p, data, k):
+        return x + jnp.sinh(u), 0.5 * u[0] ** 2, jnp.full(1, -1.0, x.dtype)
+
+    problem = jq.ShootingProblem(stage, lambda x, data: x - 1.0, lambda p, data: jnp.zeros(()))
+    start = (jnp.zeros(1), jnp.asarray([[0.5], [0.7]]), jnp.zeros((2, 1)), jnp.zeros(0))
+
+    def defects(sol):
+        x, u = np.asarray(sol.x)[:, 0], np.asarray(sol.u)[:, 0]
+        return np.abs(x[1:] - x[:-1] - np.sinh(u))
+
+    two, three = (jq.solve_shooting(problem, *start, max_iter=n) for n in (2, 3))
+    assert int(two.iterations) == 2 and int(three.iterations) == 3
+    assert np.all(defects(two) > 0.1), defects(two)
+    assert np.max(defects(three)) < 1e-12, defects(three)
+    assert np.max(np.abs(np.asarray(three.u))) > 0  # the shortest trials moved the controls
+    # Batched (its custom_vmap rule): only the members that failed are rolled out, and none
+    # when none failed.
+    reset = jax.vmap(interior_point._node_reset(stage, 2), in_axes=(0, 0, 0, None, None, None))
+    X = jnp.asarray([[[0.5], [0.7]], [[0.1], [0.2]]])
+    U = jnp.asarray([[[0.3], [0.4]], [[-0.2], [0.1]]])
+    rolled = np.cumsum(np.sinh(np.asarray(U)), axis=1)
+    out = np.asarray(reset(jnp.asarray([True, False]), X, U, jnp.zeros(0), jnp.zeros(1), None))
+    np.testing.assert_allclose(out[0], rolled[0], rtol=1e-12)
+    np.testing.assert_array_equal(out[1], np.asarray(X[1]))
+    kept = reset(jnp.asarray([False, False]), X, U, jnp.zeros(0), jnp.zeros(1), None)
+    np.testing.assert_array_equal(np.asarray(kept), np.asarray(X))
+
+
 def test_the_inertia_correction_keeps_a_definite_spectrum_and_bounds_an_indefinite_one():
     """The reduced Hessian's corrected eigenvalues: a positive definite spectrum above the floor is
     kept (Newton's step, and its quadratic convergence, where the reduced Hessian is already

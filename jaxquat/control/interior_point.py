@@ -30,9 +30,16 @@ multipliers (the discrete costates) come from the backward recursion. Steps keep
 ``s, lambda > 0`` by the fraction-to-the-boundary rule and are accepted by a filter line
 search on (constraint violation, barrier objective) with trial steps ``alpha 2^-j`` evaluated
 side by side; no trial whose violation exceeds ``theta_max = 1e4 max(1, theta(x_0))`` is
-accepted. There is no feasibility restoration phase: when no trial is acceptable the shortest
-is taken. ``mu`` falls (``mu <- min(mu / 5, mu^1.5)``) each time the barrier problem is
-solved to ``10 mu``.
+accepted. When no trial is acceptable the shortest is taken; after three such iterations in a
+row the nodes are reset to the rollout of the controls from ``x_0`` (:func:`_node_reset`: the
+continuity constraints then hold exactly, as when a multiple-shooting code initialises its
+nodes by integration), the slacks and path multipliers start anew from the path constraints
+there, as on the first pass, and the filter is emptied: a restoration of feasibility without a
+subproblem of its own (IPOPT's restoration phase minimises the violation with elastic
+variables; the violation that stalled the one-start three-wheel slew at 40 intervals was the
+continuity defects' and the slacks' mismatch, which the reset removes: 200 iterations without
+convergence before, 60 to the optimum after). ``mu`` falls (``mu <- min(mu / 5, mu^1.5)``) each
+time the barrier problem is solved to ``10 mu``.
 
 Why written here and not taken from a library: optimistix has no constrained minimiser and
 jaxopt's (unmaintained) OSQP/``BoxCDQP`` solve QPs, not NLPs; IPOPT through CasADi is the
@@ -109,6 +116,8 @@ class _State(NamedTuple):
     B: Array  # (N, nx, nu) dx_{k+1}/du_k at (X, U, p)
     objective: Array  # at (X, U, p)
     violation: Array  # at (X, U, p)
+    reset: Array  # the nodes were just reset to a rollout: start the slacks and path multipliers anew
+    failures: Array  # consecutive iterations without an acceptable trial
 
 
 _FILTER = 32  # filter entries kept (a circular buffer; old entries are dropped)
@@ -119,6 +128,7 @@ _GAMMA = 1e-5  # filter margins (gamma_theta = gamma_phi)
 _ETA = 1e-4  # Armijo constant
 _THETA_MAX = 1e4  # theta_max = _THETA_MAX max(1, theta(x_0))
 _DEBUG = False  # print one line per iteration (jax.debug.print)
+_FAILURES = 3  # consecutive failed line searches after which the nodes are reset to a rollout
 _FEW = 8  # a batch decomposes up to 1/_FEW of its reduced Hessians on their own (_corrected_solve)
 _EIG_FLOOR = 1e-8  # reduced-Hessian eigenvalues below it (or below 100 eps |H|) are raised to it
 
@@ -227,6 +237,40 @@ def _corrected_solve_batched(axis_size: int, in_batched: list[bool], H: Array, r
 
     failed = jnp.sum(~ok)
     return jax.lax.switch((failed > 0).astype(jnp.int32) + (failed > few), (lambda: x, some, every)), True
+
+
+def _node_reset(stage: Callable, N: int) -> Callable:
+    """``reset(failed, X, U, p, x0, data)``: the nodes ``x_1 .. x_N`` of the controls ``U`` rolled
+    out from ``x0`` stage after stage where ``failed``, else ``X``. Computed only where a line search
+    failed (``lax.cond``); batched (``vmap``), a ``custom_vmap`` rule rolls out the whole batch when
+    any member failed and nothing otherwise (``vmap`` turns a ``cond`` on a batched predicate into
+    both branches; measured on the suite's 8-start rate-bound slew with a reset after every failed
+    search, this 2-core CPU: 2.16 s with the plain ``cond``, 1.96 s with this rule)."""
+
+    def rollout(U, p, x0, data):
+        def step(x, k):
+            x_next = stage(x, U[k], p, data, k)[0]
+            return x_next, x_next
+
+        return jax.lax.scan(step, x0, jnp.arange(N))[1]
+
+    @jax.custom_batching.custom_vmap
+    def reset(failed, X, U, p, x0, data):
+        return jax.lax.cond(failed, lambda: rollout(U, p, x0, data), lambda: X)
+
+    @reset.def_vmap
+    def _batched(axis_size, in_batched, failed, X, U, p, x0, data):
+        failed_b, X_b = in_batched[:2]
+        X = X if X_b else jnp.broadcast_to(X, (axis_size, *X.shape))
+        failed = failed if failed_b else jnp.broadcast_to(failed, (axis_size,))
+        axes = jax.tree.map(lambda b: 0 if b else None, tuple(in_batched[2:]))
+
+        def rolled():
+            return jnp.where(failed[:, None, None], jax.vmap(rollout, in_axes=axes)(U, p, x0, data), X)
+
+        return jax.lax.cond(jnp.any(failed), rolled, lambda: X), True
+
+    return reset
 
 
 def _split(z, nx, nu):
@@ -427,6 +471,9 @@ def solve_shooting(
         slope = jnp.sum(lz * dz) + dphi @ dp - mu * jnp.sum(ds / st.s)  # d/d alpha of the barrier objective
         return dX, dU, dp, ds, lam_new - st.lam, y_new, yT_new, slope
 
+    reset_nodes = _node_reset(stage, N)
+    empty_filter = jnp.full((_FILTER, 2), jnp.inf, dtype).at[:, 1].set(-jnp.inf)
+
     def fraction(v, dv, tau):
         ratio = jnp.where(dv < 0, -tau * v / jnp.where(dv < 0, dv, -1.0), jnp.inf)
         return jnp.minimum(1.0, jnp.min(ratio, initial=jnp.inf))
@@ -437,7 +484,8 @@ def solve_shooting(
         # of its own before the loop: one copy of the stage fewer to trace and compile).
         s_start = jnp.maximum(-g, 1e-2)
         first = st.it == 0
-        st = st._replace(s=jnp.where(first, s_start, st.s), lam=jnp.where(first, st.mu / s_start, st.lam))
+        anew = first | st.reset
+        st = st._replace(s=jnp.where(anew, s_start, st.s), lam=jnp.where(anew, st.mu / s_start, st.lam))
         rX, rU, rp = dual_residual(st, Fz, lz, gz, E, dphi)
         err0, kkt = errors(st, F, g, e, rX, rU, rp, 0.0)
         err_mu, _ = errors(st, F, g, e, rX, rU, rp, st.mu)
@@ -445,7 +493,7 @@ def solve_shooting(
         new_mu = jnp.where(
             err_mu <= _KAPPA_EPS * st.mu, jnp.maximum(lower, jnp.minimum(0.2 * st.mu, st.mu**1.5)), st.mu
         )
-        filt = jnp.where(new_mu < st.mu, jnp.full_like(st.filt, jnp.inf).at[:, 1].set(-jnp.inf), st.filt)
+        filt = jnp.where(new_mu < st.mu, empty_filter, st.filt)
         mu = new_mu
         dX, dU, dp, ds, dlam, y_new, yT_new, slope = newton(st, mu, F, g, Fz, lz, gz, W, e, E, WT, dphi, d2phi)
         tau = jnp.maximum(_TAU_MIN, 1.0 - mu)
@@ -478,6 +526,17 @@ def solve_shooting(
         lam = st.lam + a_dual * dlam
         # Keep the multipliers within a factor 1e10 of mu / s (Waechter & Biegler eq. (16)).
         lam = jnp.clip(lam, mu / (1e10 * s), 1e10 * mu / s)
+        # No acceptable trial: the shortest is taken; after _FAILURES in a row the nodes are reset
+        # to the rollout of its controls from x_0 (no defects left), the slacks and path
+        # multipliers started anew at the next pass and the filter emptied (the module docstring).
+        # A reset after every failed search cost the suite's 8-start rate-bound slew 56 -> 88
+        # iterations (1.34 -> 2.16 s), where the shortest step alone had recovered.
+        U_new, p_new, X_step = st.U + a * dU, st.p + a * dp, st.X + a * dX
+        failures = jnp.where(jnp.any(ok), 0, st.failures + 1)
+        X_roll = reset_nodes(failures >= _FAILURES, X_step, U_new, p_new, x0, data)
+        reset = (failures >= _FAILURES) & jnp.all(jnp.isfinite(X_roll))  # a rollout that overflows is not taken
+        X_new = jnp.where(reset, X_roll, X_step)
+        filt = jnp.where(reset, empty_filter, filt)
         step_ok = jnp.isfinite(a) & jnp.all(jnp.isfinite(dX)) & jnp.all(jnp.isfinite(dU))
         converged = err0 <= tol
         violation = jnp.maximum(
@@ -500,9 +559,9 @@ def solve_shooting(
                 sw=switching[j],
             )
         new = _State(
-            st.X + a * dX,
-            st.U + a * dU,
-            st.p + a * dp,
+            X_new,
+            U_new,
+            p_new,
             s,
             lam,
             st.y + a * (y_new - st.y),
@@ -517,6 +576,8 @@ def solve_shooting(
             st.B,
             st.objective,
             st.violation,
+            reset,
+            jnp.where(reset, 0, failures),
         )
         # The iterate stays, with the values and the control Jacobian evaluated at it: the loop
         # ends in this branch (also at max_iter, one evaluation without a step), so the result
@@ -532,7 +593,7 @@ def solve_shooting(
         return jax.tree.map(lambda n, o: jnp.where(converged | ~step_ok | (st.it >= max_iter), o, n), new, stop)
 
     mu_start = jnp.asarray(mu0, dtype)
-    filt0 = jnp.full((_FILTER, 2), jnp.inf, dtype).at[:, 1].set(-jnp.inf)
+    filt0 = empty_filter
     ne = jax.eval_shape(lambda: terminal(X[-1], data)).shape[0]
     placeholder = jnp.ones((N, ng), dtype)  # the slacks and path multipliers, set on the first pass
     st = _State(
@@ -553,6 +614,8 @@ def solve_shooting(
         jnp.zeros((N, nx, nu), dtype),
         jnp.asarray(jnp.nan, dtype),
         jnp.asarray(jnp.nan, dtype),
+        jnp.asarray(False),
+        jnp.asarray(0),
     )
     # Every carry made to depend on the starting point (a select whose two branches are the
     # carry itself): under vmap each is then batched from the start, and the while loop's
