@@ -769,8 +769,8 @@ def test_a_redundant_final_condition_is_named_when_the_solve_fails():
     attitude as well as ``qf`` repeats three terminal conditions: the Newton systems are singular
     (measured at 10 intervals with the default 200 iterations: KKT residual 3.6e11, violation
     4.2e-3; converged in 3 iterations without it). The error names the entry and says to leave
-    it free. The diagnosis (a reverse-mode Jacobian of the terminal conditions at the last
-    iterate, compiled) took 5.9 s there."""
+    it free. The diagnosis (a Jacobian of the terminal conditions at the last iterate, compiled)
+    took 5.9 s there by reverse mode; by forward mode 3.0 s against 5.5 s at 12 intervals."""
     pf = np.asarray(jq.multiply(jq.multiply(jnp.asarray(PAYLOAD0), jq.conjugate(jnp.asarray(Q0))), jnp.asarray(QF)))
     model = jq.ControlledModel(
         _payload_body,
