@@ -193,6 +193,10 @@ def test_three_failed_line_searches_in_a_row_reset_the_nodes_to_the_rollout_of_t
     np.testing.assert_array_equal(out[1], np.asarray(X[1]))
     kept = reset(jnp.asarray([False, False]), X, U, jnp.zeros(0), jnp.zeros(1), None)
     np.testing.assert_array_equal(np.asarray(kept), np.asarray(X))
+    shared = jax.vmap(interior_point._node_reset(stage, 2), in_axes=(0, 0, None, None, None, None))
+    out = np.asarray(shared(jnp.asarray([False, True]), X, U[0], jnp.zeros(0), jnp.zeros(1), None))
+    np.testing.assert_array_equal(out[0], np.asarray(X[0]))
+    np.testing.assert_allclose(out[1], rolled[0], rtol=1e-12)  # one rollout, of the shared controls
 
 
 def test_the_inertia_correction_keeps_a_definite_spectrum_and_bounds_an_indefinite_one():

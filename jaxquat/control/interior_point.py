@@ -266,7 +266,11 @@ def _node_reset(stage: Callable, N: int) -> Callable:
         axes = jax.tree.map(lambda b: 0 if b else None, tuple(in_batched[2:]))
 
         def rolled():
-            return jnp.where(failed[:, None, None], jax.vmap(rollout, in_axes=axes)(U, p, x0, data), X)
+            if any(jax.tree.leaves(tuple(in_batched[2:]))):
+                nodes = jax.vmap(rollout, in_axes=axes)(U, p, x0, data)
+            else:  # the same rollout for every member (vmap needs a batched argument)
+                nodes = jnp.broadcast_to(rollout(U, p, x0, data), X.shape)
+            return jnp.where(failed[:, None, None], nodes, X)
 
         return jax.lax.cond(jnp.any(failed), rolled, lambda: X), True
 
