@@ -699,9 +699,10 @@ def redundant_final(cfg: Config, data: Data, time, u) -> list[int]:
         return terminal(jnp.concatenate([qs[-1], ws[-1] / data.w_ref, zs[-1] / data.h_ref]), data)
 
     # One compiled program (op by op, the failed call that runs it took 1.2 s longer: 39.7 s
-    # against 38.5 s, one run each), forward mode: the suite's payload problem (12 intervals, 37
-    # columns, 10 rows) took 2.96 s with its compilation against 5.49 s by reverse mode (XLA
-    # 1.84 s against 3.66 s; this 2-core CPU, float64), the same redundant entry.
+    # against 38.5 s, one run each), forward mode (as many tangents as controls and the time, 37
+    # on the suite's 12-interval payload problem, against 9 rows): 2.96 s with its compilation
+    # against 5.49 s by reverse mode (XLA 1.84 s against 3.66 s; this 2-core CPU, float64), the
+    # same redundant entry.
     jac_u, jac_t = jax.jit(jax.jacfwd(conditions, argnums=(0, 1)), compiler_options=_solver_compiler_options())(
         jnp.asarray(u), jnp.asarray(time)
     )
