@@ -62,7 +62,7 @@ from jax import Array
 from jax.flatten_util import ravel_pytree
 from jaxtyping import ArrayLike, Float
 
-from .. import _checks, _trig
+from .. import _arrays, _checks, _trig
 from ..mechanics.inertia import validated
 from ..manifold.lie import minus
 from .optimal_control import (
@@ -119,6 +119,20 @@ def _rollout(inertia, q0, w0, time, u, substeps: int):
     piecewise-constant torque ``u`` ``(n, 3)`` over ``[0, time]``)."""
     qs, ws = held_torque_states(inertia, q0, w0, time, u, substeps)
     return qs[-1], ws[-1]
+
+
+def _trajectory(x, pr: _Problem, *, substeps: int):
+    """The returned trajectory of the chosen start ``x``: ``(time, u, ts, qs, ws, torque,
+    violation)``, the states on the flat grid (the first row ``(q0, w0)``), the torque held per
+    interval (its last value repeated at ``ts[-1]``), the final state's residual norm. One compiled
+    program: formed eagerly, it was about 30 single-operation compilations of a first call."""
+    time, u = _unpack(x, pr)
+    qs, ws = held_torque_states(pr.inertia, pr.q0, pr.w0, time, u, substeps)
+    ts = jnp.linspace(0.0, 1.0, u.shape[0] * substeps + 1, dtype=qs.dtype) * time
+    torque = jnp.repeat(u, substeps, axis=0)
+    torque = jnp.concatenate([torque, torque[-1:]])
+    violation = jnp.linalg.norm(_residual(qs[-1], ws[-1], pr.qf, pr.wf))
+    return time, u, ts, qs, ws, torque, violation
 
 
 def _residual(q, w, qf, wf):
@@ -575,14 +589,8 @@ def minimum_time_reorientation(
     k = int(np.argmin(best_time)) if np.any(feasible) else int(np.argmin(viol_ref))
     xk = {key: jnp.asarray(v[k]) for key, v in x_ref.items()}
     multipliers = jnp.asarray(mults[k])
-    time, u = _unpack(xk, problem)
+    time, u, ts, qs, ws, torque, violation = _arrays.compiled(_trajectory, xk, problem, substeps=substeps)
     switching = jnp.asarray(sigmas[k])
-    qs, ws = held_torque_states(inertia, q0, w0, time, u, substeps)  # the first row (q0, w0)
-    qT, wT = qs[-1], ws[-1]
-    ts = jnp.linspace(0.0, 1.0, intervals * substeps + 1, dtype=dtype) * time
-    torque = jnp.repeat(u, substeps, axis=0)
-    torque = jnp.concatenate([torque, torque[-1:]])
-    violation = jnp.linalg.norm(_residual(qT, wT, qf, wf))
     return Reorientation(
         time,
         ts,
