@@ -291,7 +291,7 @@ def solve_shooting(
     *,
     tol: float = 1e-9,
     max_iter: int = 200,
-    mu0: float = 0.1,
+    mu0: float | Array = 0.1,
     hessian: str = "forward",
 ) -> ShootingSolution:
     """Solve the multiple-shooting problem from the initial guess ``(X, U, p)`` (``X`` ``(N, nx)``
@@ -309,7 +309,8 @@ def solve_shooting(
         data: any pytree passed to every problem function unchanged (boundary states, bounds).
         tol: the scaled KKT error at which the solve stops.
         max_iter: the most interior-point iterations.
-        mu0: the initial barrier parameter (small for a warm start near the solution).
+        mu0: the initial barrier parameter (small for a warm start near the solution; a traced
+            scalar too, as the solvers pass it, so that cold and warm starts share a program).
         hessian: how each stage Lagrangian's Hessian is formed: ``"forward"`` (forward over
             forward, the Jacobians coming with it) or ``"reverse"`` (forward over reverse).
             Measured on asyq01's body at 40 intervals, 11 variables per stage (this 2-core

@@ -25,7 +25,7 @@ from ..manifold.lie import minus
 from ..mechanics.inertia import validated
 from . import controlled_model, transcription
 from .controlled_model import ControlledModel
-from .transcription import Config, ConstrainedReorientation, Data, Warm, solve
+from .transcription import Config, ConstrainedReorientation, Data, Warm, guesses, solve
 
 __all__ = [
     "ReactionWheels",
@@ -393,7 +393,8 @@ def _run(
     boundary = (inertia, q0, qf, w0, wf, duration, u_ref, w_ref)
     data = _arrays.compiled(_data, boundary, rate_bound, cones, weights, fractions, extra, cfg=cfg)
     keys = _arrays.compiled(_keys, seed=seed, starts=starts)
-    out = solve(data, cfg, tol, np.int32(max_iter), keys, init, batch=batch)
+    guess = _arrays.compiled(guesses, data, init, cfg=cfg)
+    out = solve(data, cfg, tol, np.int32(max_iter), keys, guess, np.asarray(init is not None), batch=batch)
     if throw and not _checks.is_traced(out.violation):
         bad = ~np.asarray(out.converged)
         if np.any(bad):

@@ -480,11 +480,20 @@ def _start(cfg: Config, data: Data, init):
 _REVERSE_HESSIAN_PAIRS = 16  # (problem, start) pairs from which the batch uses hessian="reverse"
 
 
-def solve(data: Data, cfg: Config, tol, max_iter, keys, init=None, batch: tuple[int, ...] | None = None):
-    """:func:`_solve`, jitted (``cfg`` and ``batch`` static) by :func:`solver_jit`; ``batch``: the
+def guesses(data: Data, init=None, *, cfg: Config):
+    """Each problem's initial guess ``(X, V, p)`` (leading axis ``B``): the eigenaxis profile, or
+    the warm start ``init`` resampled onto this grid; a program of its own, apart from the
+    solver's (:func:`solve`), so that a cold and a warm start of one configuration, and warm
+    starts from results on any grid, share one compiled solver."""
+    return jax.vmap(lambda d: _start(cfg, d, init))(data)
+
+
+def solve(data: Data, cfg: Config, tol, max_iter, keys, guess, warm, batch: tuple[int, ...] | None = None):
+    """:func:`_solve`, jitted (``cfg`` and ``batch`` static) by :func:`solver_jit`, from the
+    starts ``guess`` of :func:`guesses` (``warm`` True for a warm start's); ``batch``: the
     problems' batch shape, given to the results' leading axis inside the program (eager reshapes
     compiled one program per result field on a first call), or None to keep the flat axis."""
-    return solver_jit(_solve, ("cfg", "batch"))(data, cfg, tol, max_iter, keys, init, batch)
+    return solver_jit(_solve, ("cfg", "batch"))(data, cfg, tol, max_iter, keys, guess, warm, batch)
 
 
 @functools.cache
@@ -574,11 +583,11 @@ def _solver_compiler_options() -> dict[str, Any] | None:
     return None
 
 
-def _solve(data: Data, cfg: Config, tol, max_iter, keys, init=None, batch: tuple[int, ...] | None = None):
+def _solve(data: Data, cfg: Config, tol, max_iter, keys, guess, warm, batch: tuple[int, ...] | None = None):
     """A batch of problems (``data`` with a leading axis ``B``), every start of each (one per row
     of ``keys``) solved side by side, then each problem's best start: the least cost among the
-    converged starts (the least KKT residual if none converged). Start 0 is the eigenaxis guess
-    or the warm start ``init`` (one result, shared by the batch); start ``s > 0`` adds
+    converged starts (the least KKT residual if none converged). Start 0 is ``guess`` (from
+    :func:`guesses`: the eigenaxis guess, or with ``warm`` the warm start); start ``s > 0`` adds
     ``_PERTURBATION`` times a standard normal draw (``keys[s]``) to its scaled torque.
 
     The ``B * S`` (problem, start) pairs are one flat ``vmap`` of the interior point, not a
@@ -588,11 +597,13 @@ def _solve(data: Data, cfg: Config, tol, max_iter, keys, init=None, batch: tuple
     was static, and a new ``max_iter`` recompiled it: 16 s for the suite's 12-interval gimballed
     payload)."""
     problem = _cached_problem(cfg)
-    X, V, p = jax.vmap(lambda d: _start(cfg, d, init))(data)
+    X, V, p = guess
     # A warm start begins nearer the torque bound (the margin clip) and with a smaller barrier
     # parameter: measured 15 iterations against 18 (mu0 = 0.1) for the suite's asymmetric problem
-    # from 10 onto 20 intervals, 9 against 12 for Bilimoria-Wie.
-    clip, mu0 = (0.9, 0.1) if init is None else (0.95, 0.01)
+    # from 10 onto 20 intervals, 9 against 12 for Bilimoria-Wie. Both traced (``warm`` is data):
+    # a cold and a warm start run one compiled program.
+    clip = jnp.where(warm, 0.95, 0.9).astype(X.dtype)
+    mu0 = jnp.where(warm, 0.01, 0.1).astype(X.dtype)
     B, S = data.q0.shape[0], keys.shape[0]
     # Large batches form the stage Hessians forward over reverse: each solve twice as fast for a
     # longer compile, which a batch repays (see solve_shooting's ``hessian``); up to the default
