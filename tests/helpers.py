@@ -6,6 +6,8 @@ jitted function compiles once per dtype and is reused across examples.
 
 from __future__ import annotations
 
+import contextlib
+
 import jax
 import jax.extend
 import jax.numpy as jnp
@@ -258,3 +260,20 @@ def jaxpr_equations(jaxpr):
                     yield from jaxpr_equations(sub.jaxpr)
                 elif isinstance(sub, jax.extend.core.Jaxpr):
                     yield from jaxpr_equations(sub)
+
+
+@contextlib.contextmanager
+def lowered_programs():
+    """The names of the programs lowered (traced and compiled, or taken from the compilation
+    cache) inside the ``with`` block, from JAX's monitoring events."""
+    names: list = []
+
+    def listener(event, seconds, **kwargs):
+        if event.endswith("jaxpr_to_mlir_module_duration"):
+            names.append(kwargs.get("fun_name"))
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        yield names
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)

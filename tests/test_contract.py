@@ -13,7 +13,15 @@ import numpy as np
 import pytest
 
 import jaxquat as jq
-from helpers import DTYPE, X64, assert_close, central_difference_jacobian, jaxpr_equations, random_inertias
+from helpers import (
+    DTYPE,
+    X64,
+    assert_close,
+    central_difference_jacobian,
+    jaxpr_equations,
+    lowered_programs,
+    random_inertias,
+)
 
 B = 12
 RNG = np.random.default_rng(1234)
@@ -871,15 +879,6 @@ def test_an_eager_call_lowers_at_most_one_program(name):
     x["i"] = jnp.asarray(random_inertias(23, 23), DTYPE)
     x["d"] = jnp.asarray(rng.uniform(1.0, 1.9, size=(23, 3)), DTYPE)  # principal moments
     jax.block_until_ready(x)
-    lowered = []
-
-    def listener(event, seconds, **kwargs):
-        if event.endswith("jaxpr_to_mlir_module_duration"):
-            lowered.append(kwargs.get("fun_name"))
-
-    jax.monitoring.register_event_duration_secs_listener(listener)
-    try:
+    with lowered_programs() as lowered:
         jax.block_until_ready(EAGER_ONE_PROGRAM[name](x))
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listener)
     assert len(lowered) <= 1, f"{name}: {len(lowered)} programs lowered: {lowered}"

@@ -8,7 +8,6 @@ module fixtures and kept to few intervals."""
 
 from __future__ import annotations
 
-import contextlib
 import pathlib
 
 import jax
@@ -18,7 +17,7 @@ import pytest
 from scipy.optimize import minimize
 
 import jaxquat as jq
-from helpers import X64, run_example_in_process, run_notebook_in_process
+from helpers import X64, lowered_programs, run_example_in_process, run_notebook_in_process
 
 pytestmark = pytest.mark.skipif(not X64, reason="the interior-point method converges to 1e-9 in float64 only")
 
@@ -352,28 +351,11 @@ def test_the_solver_compiles_with_its_own_xla_options_on_the_cpu():
 _FIRST_CALL_LOWERED: list = []  # the programs the free_energy fixture's call lowered
 
 
-@contextlib.contextmanager
-def _lowered():
-    """The names of the programs lowered (traced and compiled, or taken from the compilation
-    cache) inside the ``with`` block."""
-    names: list = []
-
-    def listener(event, seconds, **kwargs):
-        if event.endswith("jaxpr_to_mlir_module_duration"):
-            names.append(kwargs.get("fun_name"))
-
-    jax.monitoring.register_event_duration_secs_listener(listener)
-    try:
-        yield names
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listener)
-
-
 @pytest.fixture(scope="module")
 def free_energy():
     """Two rest-to-rest slews of the unit body in one batched call: pi/2 about (1, 2, 2)/3 and
     pi/2 about z (duration 2); the programs the call lowers are kept in ``_FIRST_CALL_LOWERED``."""
-    with _lowered() as names:
+    with lowered_programs() as names:
         r = jq.minimum_energy_reorientation(np.eye(3), np.stack([Q0, Q0]), np.stack([QF, QZ]), 2.0, intervals=N)
     _FIRST_CALL_LOWERED.extend(names)
     return r
@@ -793,7 +775,7 @@ def test_a_redundant_final_condition_is_named_when_the_solve_fails(gimballed):
     ``gimballed`` fixture's compiled solver (before session 35 this test had a model of its own,
     14.7 s of XLA on a 2-core EPYC)."""
     match = r"extra_final gives entries \[0\] .* leave them NaN \(free\)"
-    with _lowered() as names, pytest.raises(RuntimeError, match=match):
+    with lowered_programs() as names, pytest.raises(RuntimeError, match=match):
         _gimballed_slew(0, gain=0.0, qf=QF, pf=QF, avoid=-GIMBAL_MID, max_iter=20)
     assert "jit(_solve)" not in names, names  # the fixture's solver, not one of its own
 
@@ -998,7 +980,7 @@ def test_wheels_as_a_user_model_reach_the_built_in_minimum_time(wheel_bilimoria_
     for limit, ref in ((1.5, bound), (10.0, free)):
         model = jq.ControlledModel(_gyrostat, 3, extra0=np.zeros(3), extra_bound=limit, args=(np.eye(3),) * 3)
         # the second warm-started from the first (its extra states resampled with the rest)
-        with _lowered() as names:
+        with lowered_programs() as names:
             r = jq.minimum_time_reorientation(
                 np.eye(3), 1.0, Q0, qf, intervals=N, starts=1, model=model, init=r, **idle
             )
