@@ -598,7 +598,6 @@ def solve_shooting(
         return jax.tree.map(lambda n, o: jnp.where(converged | ~step_ok | (st.it >= max_iter), o, n), new, stop)
 
     mu_start = jnp.asarray(mu0, dtype)
-    filt0 = empty_filter
     ne = jax.eval_shape(lambda: terminal(X[-1], data)).shape[0]
     placeholder = jnp.ones((N, ng), dtype)  # the slacks and path multipliers, set on the first pass
     st = _State(
@@ -610,7 +609,7 @@ def solve_shooting(
         jnp.zeros((N, nx), dtype),
         jnp.zeros(ne, dtype),
         mu_start,
-        filt0,
+        empty_filter,
         jnp.asarray(jnp.inf, dtype),
         jnp.asarray(0),
         jnp.asarray(jnp.inf, dtype),
