@@ -684,6 +684,26 @@ class Warm(NamedTuple):
     h: Array | None = None  # the wheel momenta of a reaction-wheel result
 
 
+@functools.cache
+def _terminal_jacobians(cfg: Config):
+    """``(u, time, data) -> (d/du, d/dtime)`` of the terminal conditions of ``cfg`` through the
+    re-integrated trajectory: one compiled program per configuration (and shape), the problem's
+    data an argument. Forward mode (as many tangents as controls and the time, 37 on the suite's
+    12-interval payload problem, against 9 rows): 2.96 s with its compilation against 5.49 s by
+    reverse mode (XLA 1.84 s against 3.66 s; this 2-core CPU, float64), the same redundant entry;
+    compiled as one program (op by op, the failed call that runs it took 1.2 s longer: 39.7 s
+    against 38.5 s, one run each). Until session 36 the data were constants of the program, so
+    every failed solve compiled its own (the suite's two: 5.5 s each)."""
+    terminal = _cached_problem(cfg).terminal  # its rows: q's 3, w's 3, then the given z entries in order
+
+    def conditions(u, time, data):
+        fractions = None if cfg.uniform else data.fractions
+        qs, ws, zs = _states(cfg, data, (data.q0, data.w0, data.h0), time, u, cfg.substeps, fractions)
+        return terminal(jnp.concatenate([qs[-1], ws[-1] / data.w_ref, zs[-1] / data.h_ref]), data)
+
+    return jax.jit(jax.jacfwd(conditions, argnums=(0, 1)), compiler_options=_solver_compiler_options())
+
+
 def redundant_final(cfg: Config, data: Data, time, u) -> list[int]:
     """The given entries of a user model's ``z(T)`` (``extra_final``; an extra quaternion by its
     first index) whose terminal conditions the dynamics already imply, at the controls ``u``
@@ -696,27 +716,12 @@ def redundant_final(cfg: Config, data: Data, time, u) -> list[int]:
     unit length, singular values below ``sqrt(eps)`` of the largest counted as zero): a conserved
     quantity, or a state slaved to ``q``, whose condition leaves the Newton-KKT systems singular.
     """
-    m = cfg.substeps
-    fractions = None if cfg.uniform else data.fractions
     k = cfg.model_quaternions
     fixed = np.asarray(cfg.model_fixed, bool)
     groups = [(4 * j, 3) for j in range(k) if fixed[4 * j]] + [(i, 1) for i in range(4 * k, fixed.size) if fixed[i]]
     if not groups:
         return []
-    terminal = _cached_problem(cfg).terminal  # its rows: q's 3, w's 3, then the groups in order
-
-    def conditions(u_, t_):
-        qs, ws, zs = _states(cfg, data, (data.q0, data.w0, data.h0), t_, u_, m, fractions)
-        return terminal(jnp.concatenate([qs[-1], ws[-1] / data.w_ref, zs[-1] / data.h_ref]), data)
-
-    # One compiled program (op by op, the failed call that runs it took 1.2 s longer: 39.7 s
-    # against 38.5 s, one run each), forward mode (as many tangents as controls and the time, 37
-    # on the suite's 12-interval payload problem, against 9 rows): 2.96 s with its compilation
-    # against 5.49 s by reverse mode (XLA 1.84 s against 3.66 s; this 2-core CPU, float64), the
-    # same redundant entry.
-    jac_u, jac_t = jax.jit(jax.jacfwd(conditions, argnums=(0, 1)), compiler_options=_solver_compiler_options())(
-        jnp.asarray(u), jnp.asarray(time)
-    )
+    jac_u, jac_t = _terminal_jacobians(cfg)(jnp.asarray(u), jnp.asarray(time), data)
     J = np.asarray(jac_u).reshape(jac_u.shape[0], -1)
     if cfg.min_time:
         J = np.concatenate([J, np.asarray(jac_t).reshape(-1, 1)], axis=1)
