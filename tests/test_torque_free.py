@@ -38,7 +38,7 @@ def _propagate(q0, w0, moments, t):
         return jnp.asarray(np.concatenate([a, np.broadcast_to(a[-1:], (size - n, *tail))]))
 
     q, w = _euler_poinsot(flat(q0, (4,)), flat(w0, (3,)), flat(moments, (3,)), flat(t, ()))
-    return (jnp.asarray(np.asarray(v)[:n].reshape(batch + v.shape[1:])) for v in (q, w))
+    return tuple(jnp.asarray(np.asarray(v)[:n].reshape(batch + v.shape[1:])) for v in (q, w))
 
 
 def _flat(*args):

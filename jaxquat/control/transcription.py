@@ -693,7 +693,8 @@ def _terminal_jacobians(cfg: Config):
     reverse mode (XLA 1.84 s against 3.66 s; this 2-core CPU, float64), the same redundant entry;
     compiled as one program (op by op, the failed call that runs it took 1.2 s longer: 39.7 s
     against 38.5 s, one run each). Until session 36 the data were constants of the program, so
-    every failed solve compiled its own (the suite's two: 5.5 s each)."""
+    every failed solve compiled its own (the suite's four payload tests, two of them failed
+    solves: 43.1 s against 37.6 s now)."""
     terminal = _cached_problem(cfg).terminal  # its rows: q's 3, w's 3, then the given z entries in order
 
     def conditions(u, time, data):
