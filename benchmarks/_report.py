@@ -46,6 +46,8 @@ def write_section(path: str, name: str, markdown: str) -> None:
     p = pathlib.Path(path)
     text = p.read_text() if p.exists() else "# Benchmarks\n"
     block = f"{begin}\n{markdown.rstrip()}\n{end}"
+    if text.count(begin) > 1 or text.count(end) > 1:  # a stray marker would survive every rewrite
+        raise ValueError(f"{path} has more than one {begin} or {end}: remove the extra marker")
     if begin in text and end in text:
         text = text[: text.index(begin)] + block + text[text.index(end) + len(end) :]
     else:
