@@ -149,7 +149,9 @@ def test_atan2_over_n_second_derivatives():
     """The custom JVP's own derivative (JAX's, through the branches) against differences."""
     nsq = jnp.asarray([1e-6, 0.5, 3.0, 0.2], DTYPE)
     w = jnp.asarray([0.9, 0.7, -0.4, 1e-1], DTYPE)
-    check_grads(_safe.atan2_over_n, (nsq, w), order=2, modes=["fwd", "rev"], eps=1e-3 if DTYPE == jnp.float32 else 1e-5)
+    check_grads(
+        jax.jit(_safe.atan2_over_n), (nsq, w), order=2, modes=["fwd", "rev"], eps=1e-3 if DTYPE == jnp.float32 else 1e-5
+    )
 
 
 _sinc_parts = jax.jit(jax.vmap(lambda s: jax.jvp(_safe.sinc_cos_of_sq, (s,), (jnp.ones_like(s),))))
@@ -216,7 +218,7 @@ def test_sinc_cos_of_sq_derivatives_against_references():
     np.testing.assert_allclose(np.asarray(d_cos), -0.5 * np.asarray(sinc), rtol=0, atol=0)
     assert np.all(np.isfinite(np.asarray(cos)))
     check_grads(
-        lambda s: _safe.sinc_cos_of_sq(s),
+        jax.jit(_safe.sinc_cos_of_sq),
         (jnp.asarray([1e-4, 0.3, 5.0], DTYPE),),
         order=2,
         modes=["fwd", "rev"],
