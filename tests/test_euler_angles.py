@@ -56,10 +56,11 @@ def test_gimbal_lock_round_trip(seq):
             rows.append([a, mid, c])
     angles = np.asarray(rows)
     q = from_scipy(Rotation.from_euler(seq, angles).as_quat()).astype(DTYPE)
-    # Run on 64 rows (the rows repeated), test_against_scipy's shape: its compiled programs.
-    out = _to[seq](np.resize(q, (64, 4)))[: len(q)]
+    # On 64 rows (the rows repeated), test_against_scipy's shape: its compiled programs.
+    padded = _to[seq](np.resize(q, (64, 4)))
+    out = padded[: len(q)]
     assert np.all(np.isfinite(np.asarray(out)))
-    back = _from[seq](np.resize(np.asarray(out), (64, 3)))[: len(q)]
+    back = _from[seq](padded)[: len(q)]
     # Rotation reproduced to rounding: 1e-4 degrees is far larger than this tolerance.
     assert_same_rotation(back, q, tol=20 * TOL)
     with warnings.catch_warnings():
