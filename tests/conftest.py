@@ -25,7 +25,9 @@ no longer knows the flag and aborts the process at start ("Unknown flag in XLA_F
 the GPU machine of session 21), which would take down every test worker.
 """
 
+import atexit
 import os
+import sys
 from importlib.metadata import version
 
 import pytest
@@ -56,6 +58,20 @@ os.environ["OPENBLAS_NUM_THREADS"] = "1"
 
 import jax  # noqa: E402
 
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # A test worker ends without JAX's exit clean-up (jax._src.api.clean_up, registered when jax
+    # was imported, so it runs after this handler), which frees every compiled program one by one:
+    # 5-7 s per worker at the end of the float32 pass, with the pass waiting for both (its last
+    # worker done to the run's end 7.2-8.2 s, 2.7 s without it; 2-core EPYC). By then the worker
+    # has sent every report and its exit status to the controller, which decides the run's status;
+    # what is left is memory the process's end returns anyway.
+    @atexit.register
+    def _end_without_freeing():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
+
+
 # Accidental implicit broadcasting is a bug in library code: make it an error.
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
@@ -78,25 +94,26 @@ def x64():
     return bool(jax.config.jax_enable_x64)
 
 
-# The files that take longest (seconds of test time on a 2-core CPU, --durations=0, float64 /
-# float32 pass: optimal control about 145 / 0, the integrators 138 / 40, the contract 100 / 103,
-# the time-optimal solvers about 80 / 0, the torque-free flow 59 / 26, the examples 56 / 0, the
-# spline 45 / 26, the notebooks about 40 / 0, the Lie solvers 39 / 17, then the Euler angles,
-# the optimisation examples, the UKF, attitude determination and the MEKF, 14-26 s each) are
-# collected first, the rest in file order. pytest-xdist's --dist loadfile hands a
-# worker the next file as it frees up, so the long files start first and the short ones fill the
+# The files that take longest (seconds of test time on a 2-core EPYC, float64 / float32 pass,
+# sessions 38-39: optimal control about 250 / 0, the integrators 156 / 95, the contract 123 / 115,
+# the time-optimal solvers about 80 / 0, the examples 48 / 0, the torque-free flow 47 / 19, the
+# Lie solvers 43 / 20, the spline 43 / 27, the Euler angles 34 / 22, the notebooks 26 / 0, then
+# the optimisation examples, the UKF, attitude determination and the MEKF, 8-25 s each) are
+# collected first, the rest in file order. pytest-xdist's --dist loadfile hands a worker the next
+# file as it frees up, in this order with --no-loadscope-reorder (Makefile; by default xdist sorts
+# the files by their number of tests), so the long files start first and the short ones fill the
 # end, instead of one worker finishing a long file alone. Order only: no test depends on another.
 _LONGEST_FIRST = (
     "test_optimal_control.py",
     "test_integrators.py",
     "test_contract.py",  # the longest in the float32 pass
     "test_time_optimal.py",
-    "test_torque_free.py",
     "test_examples.py",
-    "test_spline.py",
-    "test_notebooks.py",
+    "test_torque_free.py",
     "test_lie_solvers.py",
+    "test_spline.py",
     "test_euler_angles.py",
+    "test_notebooks.py",
     "test_examples_optimisation.py",
     "test_ukf.py",
     "test_determination.py",
