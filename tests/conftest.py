@@ -1,5 +1,6 @@
 """Suite-wide settings: dtype from JAX_ENABLE_X64, strict rank promotion, hypothesis profile,
-XLA's cheaper CPU compilation, and one OpenBLAS thread for LAPACK (below, at its line).
+XLA's cheaper CPU compilation, one OpenBLAS thread for LAPACK, the test workers' exit without
+JAX's clean-up and the files' order (the last three below, at their lines).
 
 XLA compilation is most of the suite's time (52 % of the float64 pass, and 16 % more tracing).
 ``--xla_cpu_use_fusion_emitters=false`` (XLA's older elemental CPU emitters instead of its MLIR
