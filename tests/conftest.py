@@ -1,6 +1,6 @@
 """Suite-wide settings: dtype from JAX_ENABLE_X64, strict rank promotion, hypothesis profile,
-XLA's cheaper CPU compilation, one OpenBLAS thread for LAPACK, the test workers' exit without
-JAX's clean-up and the files' order (the last three below, at their lines).
+XLA's cheaper CPU compilation, one OpenBLAS thread for LAPACK, the test workers' cores, their
+exit without JAX's clean-up and the files' order (the last four below, at their lines).
 
 XLA compilation is most of the suite's time (52 % of the float64 pass, and 16 % more tracing).
 ``--xla_cpu_use_fusion_emitters=false`` (XLA's older elemental CPU emitters instead of its MLIR
@@ -56,6 +56,24 @@ if not os.environ.get("JAXQUAT_TEST_XLA_DEFAULTS") and _before("jaxlib", 0, 11):
 # on the cores of the machine; set before jax loads scipy's copy (pytest's plugins load only
 # NumPy's own), and inherited by the example and notebook subprocesses.
 os.environ["OPENBLAS_NUM_THREADS"] = "1"
+
+# Each test worker runs on its own share of the cores (with two workers on two cores: one core
+# each), set before XLA starts its threads, which then size their pools to that share: XLA's
+# threads of one worker (its runtime's thread pool, its compiler's) otherwise competed with the
+# other worker for both cores. Two pytest processes side by side on this 2-core EPYC, each running
+# test_torque_free.py and test_spline.py in float64: 81-84 s each when each had a core of its own,
+# 84-92 s unpinned (three interleaved pairs, 9-10 % less each time); the float32 pass on two
+# workers 196-220 s against 226-238 s (two runs each). The example and notebook subprocesses
+# inherit their worker's cores. Only in xdist workers, and only where the system has the call
+# (Linux) and allows it.
+if os.environ.get("PYTEST_XDIST_WORKER") and hasattr(os, "sched_setaffinity"):
+    _cpus = sorted(os.sched_getaffinity(0))
+    _n, _i = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")), int(os.environ["PYTEST_XDIST_WORKER"][2:])
+    if _n > 1:
+        try:
+            os.sched_setaffinity(0, set(_cpus[_i::_n]) or {_cpus[_i % len(_cpus)]})
+        except OSError:
+            pass
 
 import jax  # noqa: E402
 
