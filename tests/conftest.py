@@ -61,8 +61,8 @@ os.environ["OPENBLAS_NUM_THREADS"] = "1"
 # each), set before XLA starts its threads, which then size their pools to that share: XLA's
 # threads of one worker (its runtime's thread pool, its compiler's) otherwise competed with the
 # other worker for both cores. Two pytest processes side by side on this 2-core EPYC, each running
-# test_torque_free.py and test_spline.py in float64: 81-84 s each when each had a core of its own,
-# 84-92 s unpinned (three interleaved pairs, 9-10 % less each time); the float32 pass on two
+# test_torque_free.py and test_spline.py in float64: 76-85 s each when each had a core of its own,
+# 83-93 s unpinned (three interleaved pairs, 9-10 % less in each); the float32 pass on two
 # workers 196-220 s against 226-238 s (two runs each). The example and notebook subprocesses
 # inherit their worker's cores. Only in xdist workers, and only where the system has the call
 # (Linux) and allows it.
@@ -97,7 +97,7 @@ def pytest_unconfigure(config):
     report and its exit status (xdist sends them at the end of ``pytest_sessionfinish``, before
     this): those run a full garbage collection each, for unraisable exceptions to report, which
     at the end of a pass walk the millions of objects a worker holds (0.3-0.5 s each at 0.6-1.0
-    million objects, after a fifth of the float64 pass's tests; the float64 pass's last worker
+    million objects, after four of the float64 pass's files; the float64 pass's last worker
     ended 5.7 s before the pass did). An exception that only a final collection would raise is
     lost with them; in the controller and in a run without workers both stay."""
     if os.environ.get("PYTEST_XDIST_WORKER"):
