@@ -26,7 +26,6 @@ no longer knows the flag and aborts the process at start ("Unknown flag in XLA_F
 the GPU machine of session 21), which would take down every test worker.
 """
 
-import atexit
 import os
 import sys
 from importlib.metadata import version
@@ -77,31 +76,28 @@ if os.environ.get("PYTEST_XDIST_WORKER") and hasattr(os, "sched_setaffinity"):
 
 import jax  # noqa: E402
 
-if os.environ.get("PYTEST_XDIST_WORKER"):
-    # A test worker ends without JAX's exit clean-up (jax._src.api.clean_up, registered when jax
-    # was imported, so it runs after this handler), which frees every compiled program one by one:
-    # 5-7 s per worker at the end of the float32 pass, with the pass waiting for both (its last
-    # worker done to the run's end 7.2-8.2 s, 2.7 s without it; 2-core EPYC). By then the worker
-    # has sent every report and its exit status to the controller, which decides the run's status;
-    # what is left is memory the process's end returns anyway.
-    @atexit.register
-    def _end_without_freeing():
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os._exit(0)
-
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_unconfigure(config):
-    """A test worker ends before pytest's own unconfigure and clean-up, once it has sent its last
-    report and its exit status (xdist sends them at the end of ``pytest_sessionfinish``, before
-    this): those run a full garbage collection each, for unraisable exceptions to report, which
-    at the end of a pass walk the millions of objects a worker holds (0.3-0.5 s each at 0.6-1.0
-    million objects, after four of the float64 pass's files; the float64 pass's last worker
-    ended 5.7 s before the pass did). An exception that only a final collection would raise is
-    lost with them; in the controller and in a run without workers both stay."""
+    """A test worker ends here, once it has sent its last report and its exit status (xdist sends
+    them at the end of ``pytest_sessionfinish``, before this); the controller decides the run's
+    status from them (a failing test still fails the run: checked). What it skips:
+
+    - pytest's own unconfigure and clean-up, which run a full garbage collection each, for
+      unraisable exceptions to report, walking the millions of objects a worker holds at the end
+      of a pass (0.3-0.5 s each at 0.6-1.0 million objects, after four of the float64 pass's
+      files; the float64 pass's last worker ended 5.7 s before the pass did). An exception that
+      only a final collection would raise is lost with them.
+    - JAX's exit clean-up (``jax._src.api.clean_up``), which frees every compiled program one by
+      one: 5-7 s per worker at the end of the float32 pass, with the pass waiting for both (its
+      last worker done to the run's end 7.2-8.2 s, 2.7 s without it; 2-core EPYC). What is left is
+      memory the process's end returns anyway.
+
+    In the controller and in a run without workers both stay."""
     if os.environ.get("PYTEST_XDIST_WORKER"):
-        _end_without_freeing()
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(0)
 
 
 # Accidental implicit broadcasting is a bug in library code: make it an error.
