@@ -11,7 +11,13 @@ compiling; the benchmarks run XLA's defaults) and, where a fusion evaluates in a
 rounding, on which no assertion may depend. ``--xla_backend_optimization_level=0`` as well
 would have saved more (the float64 pass 6m35 instead of 11m02) but together with this flag it
 computed wrong float32 results (| |q| - 1 | up to 1.5e-5 in 637 of 10^4 closed-form torque-free
-states, against 2.1e-7 with either flag alone), so it is not used. The flag also hides
+states, against 2.1e-7 with either flag alone), so it is not used. Session 41 found that error
+depends on the cores: ``simulate``'s closed form at 10^4 saved times, float32, level 0, 1.5e-5
+in 671 states on one core (``taskset``, as a pinned test worker runs) and 3.3e-7 on two, 2.7e-7
+at XLA's level on either; a verdict that moves with the core count rules the level out (the
+float32 pass at level 0: 156 s against 202-215 s, with that test failing).
+``--xla_cpu_opt_preset=FAST_COMPILE`` (session 41) compiled the closed form's gradient in 3.6-4.0 s
+against 5.4-5.9 s but the whole float32 pass slower (268 s, 370 s of XLA against 257 s). The flag also hides
 what a user meets under the defaults: the scan path's step with a torque compiled there to
 kernels that stalled (an MLP, 0.65 s per backward step of 16 bodies, fixed in session 23;
 element-wise laws, the gradient of 1000 bodies x 100 steps in 32-40 s, fixed in session 24), so
