@@ -87,14 +87,18 @@ def test_identities(seed):
 
 
 def test_gradients():
+    """``check_grads`` and the identities on jitted functions: eager, their first and second
+    derivatives ran as about 110 single-operation compilations (3.0 s of the float32 pass,
+    session 41)."""
     x = jnp.asarray([-7.0, -1.2, 0.0, 0.3, 2.0, 1e4], DTYPE)
-    check_grads(_trig.sincos, (x,), order=2, modes=["fwd", "rev"], eps=1e-3 if DTYPE == jnp.float32 else 1e-5)
+    sincos, atan2 = jax.jit(_trig.sincos), jax.jit(_trig.atan2)
+    check_grads(sincos, (x,), order=2, modes=["fwd", "rev"], eps=1e-3 if DTYPE == jnp.float32 else 1e-5)
     y = jnp.asarray([0.3, -2.0, 7.0, 0.0, -0.2], DTYPE)  # (off the branch cut at x < 0, y = 0)
     xx = jnp.asarray([-1.0, 0.5, -3.0, 2.0, -1.0], DTYPE)
-    check_grads(_trig.atan2, (y, xx), order=2, modes=["fwd", "rev"], eps=1e-3 if DTYPE == jnp.float32 else 1e-5)
+    check_grads(atan2, (y, xx), order=2, modes=["fwd", "rev"], eps=1e-3 if DTYPE == jnp.float32 else 1e-5)
     # exact derivative identities, not finite differences
-    np.testing.assert_allclose(jax.vmap(jax.grad(_trig.sin))(x), _trig.cos(x), rtol=0, atol=0)
-    gy, gx = jax.vmap(jax.grad(_trig.atan2, argnums=(0, 1)))(y, xx)
+    np.testing.assert_allclose(jax.jit(jax.vmap(jax.grad(_trig.sin)))(x), _trig.cos(x), rtol=0, atol=0)
+    gy, gx = jax.jit(jax.vmap(jax.grad(_trig.atan2, argnums=(0, 1))))(y, xx)
     np.testing.assert_allclose(gy, xx / (xx * xx + y * y), rtol=4 * EPS)
     np.testing.assert_allclose(gx, -y / (xx * xx + y * y), rtol=4 * EPS)
 
