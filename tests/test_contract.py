@@ -721,7 +721,7 @@ ONE_PASS = pytest.mark.skipif(not X64, reason="annotations do not depend on the 
 def test_annotations_hold_for_nested_and_broadcast_batches(name, typechecked):
     fn, args, _ = _make(name, SMOOTH_Q)
     fn = typechecked.get(fn, fn)
-    args = [jnp.asarray(a, DTYPE) for a in args]
+    args = [_on_device(a, DTYPE) for a in args]
     fn(*[a.reshape((3, 4) + a.shape[1:]) for a in args])  # a nested batch, all arguments alike
     if len(args) > 1:
         # batch shapes that broadcast, (3, 4) against (4,), the second as a NumPy array
