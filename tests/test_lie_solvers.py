@@ -355,6 +355,11 @@ def test_without_a_mask_a_non_rigid_body_state_gets_a_clear_error():
         diffrax.diffeqsolve(diffrax.ODETerm(quadrotor), jq.RKMK4(), 0.0, 0.1, 0.01, _y0(), args=THRUST)
 
 
+@pytest.mark.skipif(
+    not X64,
+    reason="midpoint_weights computes in float64 under either x64 flag, and the weights are constants: "
+    "checked in the float64 pass (its eager evaluation compiled 37 small programs in the float32 pass)",
+)
 @pytest.mark.parametrize(
     "solver, source", [(jq.RKMK45, diffrax.Dopri5), (jq.RKMKTsit5, diffrax.Tsit5), (jq.RKMK8, diffrax.Dopri8)]
 )
