@@ -16,8 +16,8 @@ depends on the cores: ``simulate``'s closed form at 10^4 saved times, float32, l
 in 671 states on one core (``taskset``, as a pinned test worker runs) and 3.3e-7 on two, 2.7e-7
 at XLA's level on either; a verdict that moves with the core count rules the level out (the
 float32 pass at level 0: 156 s against 202-215 s, with that test failing).
-``--xla_cpu_opt_preset=FAST_COMPILE`` (session 41) compiled the closed form's gradient in 3.6-4.0 s
-against 5.4-5.9 s but the whole float32 pass slower (268 s, 370 s of XLA against 257 s). The flag also hides
+``--xla_cpu_opt_preset=FAST_COMPILE`` (session 41) compiled the closed form's gradient in 3.6-4.3 s
+against 5.4-5.9 s but the whole float32 pass slower (268 s, 370 s of XLA against 243-257 s). The flag also hides
 what a user meets under the defaults: the scan path's step with a torque compiled there to
 kernels that stalled (an MLP, 0.65 s per backward step of 16 bodies, fixed in session 23;
 element-wise laws, the gradient of 1000 bodies x 100 steps in 32-40 s, fixed in session 24), so

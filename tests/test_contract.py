@@ -20,6 +20,7 @@ from helpers import (
     central_difference_jacobian,
     jaxpr_equations,
     lowered_programs,
+    on_device,
     random_inertias,
 )
 
@@ -254,13 +255,6 @@ def _loss(fn, args, diff, weights):
 NAMES = sorted(REGISTRY)
 
 
-def _on_device(a, dtype):
-    """``a`` converted in NumPy, then placed on the device: ``jnp.asarray(a, dtype)`` of a NumPy
-    array compiles a program for each new shape and dtype (a conversion, or a copy), about 20 ms
-    each, about 150 of them per float32 pass in the tests below (session 41)."""
-    return jax.device_put(np.asarray(a, dtype))
-
-
 def _transformed(fn):
     """``fn`` under ``jit``, under ``vmap`` and on the batch reshaped to ``(3, 4, ...)``, in one
     compiled program (three programs of their own until session 36: the test's 79 cases with
@@ -278,7 +272,7 @@ def test_jit_vmap_and_nested_batching(name):
     """The eager call (its own compiled program) against the same function traced under ``jit``,
     mapped by ``vmap`` (one element at a time), and called on a nested batch ``(3, 4, ...)``."""
     fn, args, _ = _make(name, SMOOTH_Q)
-    args = [_on_device(a, DTYPE) for a in args]
+    args = [on_device(a, DTYPE) for a in args]
     eager = fn(*args)
     jitted, mapped, nested = _transformed(fn)(*args)
     for e, j, m, n in zip(_leaves(eager), _leaves(jitted), _leaves(mapped), _leaves(nested)):
@@ -295,11 +289,11 @@ def test_jit_vmap_and_nested_batching(name):
 @pytest.mark.parametrize("name", NAMES)
 def test_low_precision_runs(name, dtype):
     fn, args, _ = _make(name, SMOOTH_Q)
-    out = fn(*[_on_device(a, dtype) for a in args])
+    out = fn(*[on_device(a, dtype) for a in args])
     for o in _leaves(out):
         assert o.dtype == dtype, f"{name}: {o.dtype} != {dtype}"
         assert np.all(np.isfinite(np.asarray(o, np.float32)))
-    ref = fn(*[_on_device(a, np.float32) for a in args])
+    ref = fn(*[on_device(a, np.float32) for a in args])
     for o, r in zip(_leaves(out), _leaves(ref)):
         o, r = np.asarray(o, np.float32), np.asarray(r, np.float32)
         if name.startswith("to_euler"):  # angles near +-pi may wrap either way
@@ -721,7 +715,7 @@ ONE_PASS = pytest.mark.skipif(not X64, reason="annotations do not depend on the 
 def test_annotations_hold_for_nested_and_broadcast_batches(name, typechecked):
     fn, args, _ = _make(name, SMOOTH_Q)
     fn = typechecked.get(fn, fn)
-    args = [_on_device(a, DTYPE) for a in args]
+    args = [on_device(a, DTYPE) for a in args]
     fn(*[a.reshape((3, 4) + a.shape[1:]) for a in args])  # a nested batch, all arguments alike
     if len(args) > 1:
         # batch shapes that broadcast, (3, 4) against (4,), the second as a NumPy array
