@@ -160,7 +160,10 @@ def vee(m: Array) -> Array:
 
 
 def symmetric_solve(inertia: Array, b: Array) -> Array:
-    """``I^-1 b`` for symmetric ``I`` by the adjugate (element-wise, so it fuses; no LAPACK call)."""
+    """``I^-1 b`` for symmetric ``I`` by the adjugate (element-wise, so it fuses; no LAPACK call).
+    Each component is divided by the determinant before the stack, so a shared tensor ``(3, 3)``
+    meets a batch ``b`` ``(n, 3)`` without a rank promotion (``det[..., None]`` had rank 1, which
+    ``jax_numpy_rank_promotion="raise"`` refused); the same values."""
     m00, m01, m02 = inertia[..., 0, 0], inertia[..., 0, 1], inertia[..., 0, 2]
     m11, m12, m22 = inertia[..., 1, 1], inertia[..., 1, 2], inertia[..., 2, 2]
     c00 = m11 * m22 - m12 * m12
@@ -171,9 +174,13 @@ def symmetric_solve(inertia: Array, b: Array) -> Array:
     c22 = m00 * m11 - m01 * m01
     det = m00 * c00 + m01 * c01 + m02 * c02
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return (
-        jnp.stack([c00 * b0 + c01 * b1 + c02 * b2, c01 * b0 + c11 * b1 + c12 * b2, c02 * b0 + c12 * b1 + c22 * b2], -1)
-        / det[..., None]
+    return jnp.stack(
+        [
+            (c00 * b0 + c01 * b1 + c02 * b2) / det,
+            (c01 * b0 + c11 * b1 + c12 * b2) / det,
+            (c02 * b0 + c12 * b1 + c22 * b2) / det,
+        ],
+        -1,
     )
 
 

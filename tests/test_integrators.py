@@ -443,7 +443,7 @@ def test_scan_path_gradient_and_unit_norm_in_float32_too():
 # ``args``) under XLA's default flags, in float64: the suite's own processes compile with the
 # legacy emitters (tests/conftest.py), which hid the defects this checks. The scan path's
 # backward step compiled (fusion emitters) to a kernel of 0.65 s per step for 16 bodies with the
-# MLP, and of about 0.48 s per step with the PD law (struct_of_arrays._columns_by_products), so
+# MLP, and of about 0.48 s per step with the PD law (struct_of_arrays.columns_by_products), so
 # either 1000-step gradient would take minutes; and diffrax 0.7.1-0.7.2 returned a gradient
 # 2.6 % off under jit on the diffeqsolve path (ConstantStepSize, SaveAt(ts), the default adjoint).
 LEARNED_TORQUE_SCRIPT = r"""

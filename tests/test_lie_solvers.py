@@ -337,6 +337,37 @@ def test_the_fixed_step_driver_over_one_interval_has_no_scan_of_length_one():
     assert 1 not in lengths and 10 in lengths, lengths
 
 
+def _one_step(layout):
+    """One step of ``RKMK45`` (its stages, error estimate and first-same-as-last dense output) and
+    of ``LieEuler`` from 5 rigid bodies ``(q (5, 4), w (5, 3))``, in ``layout``, and the dense
+    output of each at two fifths of the step; one compiled program."""
+    rng = np.random.default_rng(1)
+    y0 = (jq.normalize(jnp.asarray(rng.normal(size=(5, 4)), DTYPE)), jnp.asarray(rng.normal(size=(5, 3)), DTYPE))
+    term = diffrax.ODETerm(jq.RigidBody(jnp.diag(jnp.asarray(INERTIA, DTYPE))))
+    out = []
+    for cls in (jq.RKMK45, jq.LieEuler):
+        solver = cls(layout=layout)
+        state = solver.init(term, 0.0, 0.05, y0, None)
+        y1, err, dense, _, _ = solver.step(term, 0.0, 0.05, y0, None, state, False)
+        out.append((y1, err, solver.interpolation_cls(t0=0.0, t1=0.05, **dense).evaluate(0.02)))
+    return out
+
+
+def test_both_layouts_are_one_method():
+    """``layout="rows"`` (the optimal-control transcription's) and the default ``"components"``:
+    the same step, error estimate and dense output to rounding, on a batch."""
+    rows, parts = (jax.jit(functools.partial(_one_step, layout))() for layout in ("rows", "components"))
+    assert rows[0][1] is not None and rows[1][1] is None  # RKMK45's error estimate, none for LieEuler
+    for a, b in zip(jax.tree.leaves(rows), jax.tree.leaves(parts)):
+        assert a.shape == b.shape and a.shape[0] == 5
+        assert_close(b, a, tol=1e-13 if X64 else 2e-6)
+
+
+def test_a_bad_layout_raises_naming_layout():
+    with pytest.raises(ValueError, match="'layout'.*components.*rows"):
+        jq.RKMK4(layout="soa")
+
+
 @pytest.mark.parametrize(
     "mask, error, match",
     [

@@ -170,7 +170,7 @@ def held_torque_states(inertia, q0, w0, time, u, substeps: int, fractions=None):
     def field(t, y, u_k):  # the Lie-algebra form: the body rate itself on the quaternion leaf
         return y[1], inverse @ (u_k - jnp.cross(y[1], inertia @ y[1]))
 
-    return _held(RKMK4(), field, (q0, w0), time, u, substeps, fractions)
+    return _held(RKMK4(layout="rows"), field, (q0, w0), time, u, substeps, fractions)
 
 
 def held_wheel_states(inertia, axes, q0, w0, h0, time, u, substeps: int, fractions=None):
@@ -186,12 +186,18 @@ def held_wheel_states(inertia, axes, q0, w0, h0, time, u, substeps: int, fractio
         total = inertia @ w + h @ axes
         return w, inverse @ (-(u_k @ axes) - jnp.cross(w, total)), u_k
 
-    return _held(RKMK4(quaternions=(True, False, False)), field, (q0, w0, h0), time, u, substeps, fractions)
+    return _held(
+        RKMK4(quaternions=(True, False, False), layout="rows"), field, (q0, w0, h0), time, u, substeps, fractions
+    )
 
 
 def _held(solver, field, y0, time, u, substeps: int, fractions):
     """``solver`` through the Lie-algebra vector field ``field(t, y, u_k)`` from ``y0`` over
-    ``[0, time]`` on one flat grid, each step with its interval's control ``u_k``."""
+    ``[0, time]`` on one flat grid, each step with its interval's control ``u_k``. The solvers
+    here hold the quaternion as rows (``layout="rows"``): on the component layout, the Lie
+    solvers' default, Bilimoria-Wie at 80 intervals solved in 1.2-1.6 s against 0.92 s and
+    reached its first result in 10.0-10.2 s against 8.9-9.0 s (this 2-core CPU, two runs each;
+    the same optimum), the second derivatives of these one-interval rollouts being larger."""
     ts = _grid(u.shape[0], substeps, fractions, y0[1].dtype) * time
     return solve_fixed_steps(
         solver,
@@ -211,12 +217,14 @@ def _states(cfg: Config, data: Data, x0, time, u, substeps: int, fractions=None)
     if cfg.model is not None and cfg.model_quaternions:
         k = cfg.model_quaternions
         field = lie_field(cfg.model, data.model_args, k)
-        solver = RKMK4(quaternions=(True, False, True, False))
+        solver = RKMK4(quaternions=(True, False, True, False), layout="rows")
         qs, ws, Ps, rs = _held(solver, field, (q0, w0, *split_state(h0, k)), time, u, substeps, fractions)
         return qs, ws, join_state(Ps, rs)
     if cfg.model is not None:
         field = lie_field(cfg.model, data.model_args)
-        return _held(RKMK4(quaternions=(True, False, False)), field, (q0, w0, h0), time, u, substeps, fractions)
+        return _held(
+            RKMK4(quaternions=(True, False, False), layout="rows"), field, (q0, w0, h0), time, u, substeps, fractions
+        )
     if not cfg.wheels:
         qs, ws = held_torque_states(data.inertia, q0, w0, time, u, substeps, fractions)
         return qs, ws, jnp.zeros(ws.shape[:-1] + (0,), ws.dtype)

@@ -53,6 +53,7 @@ import numpy as np
 from jax import Array
 
 from .. import _arrays, _quaternion, _rates, _rotation, _safe
+from . import struct_of_arrays
 
 __all__ = [
     "AbstractLeafInterpolation",
@@ -283,6 +284,96 @@ def dexpinv(theta: Array, w: Array, order: int) -> Array:
     return w + 0.5 * cross + coef * jnp.cross(theta, cross)
 
 
+class _RowLeaves:
+    """A quaternion leaf as its ``(..., 4)`` rows (``layout="rows"``): every value of a leaf is a
+    1-tuple holding the array, the local coordinates and slopes ``(..., 3)``."""
+
+    @staticmethod
+    def split(q: Array) -> tuple[Array, ...]:
+        return (q,)
+
+    @staticmethod
+    def point(q: tuple, theta: tuple) -> Array:
+        """The rows of ``q Exp(theta)`` (a stage's argument of the vector field)."""
+        return _quaternion.multiply(q[0], _rotation.from_rotvec(theta[0]))
+
+    @staticmethod
+    def rate(w: Array) -> tuple[Array, ...]:
+        """The parts of a body rate ``(..., 3)`` (the tangent field's value on the leaf)."""
+        return (w,)
+
+    @staticmethod
+    def dexpinv(theta: tuple, w: tuple, order: int) -> tuple[Array, ...]:
+        return (dexpinv(theta[0], w[0], order),)
+
+    @staticmethod
+    def advance(q: tuple, theta: tuple) -> tuple[tuple, Array]:
+        """``q Exp(theta)`` with one Newton step on its norm: its parts and its rows."""
+        q1 = unit(_quaternion.multiply(q[0], _rotation.from_rotvec(theta[0])))
+        return (q1,), q1
+
+    @staticmethod
+    def error(q1: tuple, e: tuple) -> Array:
+        """``q1 (0, e/2)``, the first-order difference ``q1 - q_n Exp(theta_1 - e)``."""
+        return _quaternion.multiply(q1[0], jnp.concatenate([jnp.zeros_like(e[0][..., :1]), 0.5 * e[0]], -1))
+
+    @staticmethod
+    def rows(c: tuple) -> Array:
+        return c[0]
+
+
+class _ComponentLeaves:
+    """A quaternion leaf as one array per component (``layout="components"``, the default): the
+    Lie part of a step (``Exp``, the products, ``dexp^-1``, the norm step) written out on them as
+    in :mod:`jaxquat.integration.struct_of_arrays`, element-wise over the batch. The vector field
+    still takes and returns rows: its argument is assembled and then multiplied by ``I_4``, its
+    value split by :func:`jaxquat.integration.struct_of_arrays.columns_by_products`; XLA on CPU
+    fuses neither product, so the field runs as row kernels of its own and the step's Lie part
+    as element-wise ones. Measured (``diffeqsolve`` with ``RKMK4``, ``RigidBody``, 1000 bodies x
+    1000 steps, float32, this 2-core CPU, one run each): the forward pass 333 ms without the two
+    products (XLA fused the field's rows into each component of every stage's slope), 365 ms
+    with the first alone, 110 ms with the second alone, 85 ms with both; the row layout 600 ms."""
+
+    @staticmethod
+    def split(q: Array) -> tuple[Array, ...]:
+        return tuple(_arrays.components(q))
+
+    @staticmethod
+    def point(q: tuple, theta: tuple) -> Array:
+        rows = _arrays.assemble(*struct_of_arrays.multiply(q, struct_of_arrays.exp(theta)))
+        return _arrays.matmul(rows, jnp.eye(4, dtype=rows.dtype))
+
+    @staticmethod
+    def rate(w: Array) -> tuple[Array, ...]:
+        return struct_of_arrays.columns_by_products(w)
+
+    @staticmethod
+    def dexpinv(theta: tuple, w: tuple, order: int) -> tuple[Array, ...]:
+        return struct_of_arrays.dexpinv(theta, w, order)
+
+    @staticmethod
+    def advance(q: tuple, theta: tuple) -> tuple[tuple, Array]:
+        q1 = struct_of_arrays.unit(struct_of_arrays.multiply(q, struct_of_arrays.exp(theta)))
+        return q1, _arrays.assemble(*q1)
+
+    @staticmethod
+    def error(q1: tuple, e: tuple) -> Array:
+        return _arrays.assemble(*_quaternion.multiply_components(q1, (None, *(0.5 * x for x in e))))
+
+    @staticmethod
+    def rows(c: tuple) -> Array:
+        return _arrays.assemble(*c)
+
+
+_LAYOUTS = {"components": _ComponentLeaves, "rows": _RowLeaves}
+
+
+def _layout(value: str) -> str:
+    if value not in _LAYOUTS:
+        raise ValueError(f"argument 'layout' must be one of {sorted(_LAYOUTS)}, got {value!r}")
+    return value
+
+
 class BodyRateTerm(diffrax.ODETerm):
     """An ``ODETerm`` whose vector field returns, on each quaternion leaf, the body rate
     ``w_b`` ``(..., 3)`` instead of ``qdot`` (the Lie-algebra form ``q' = q (0, w_b)/2``): the
@@ -311,9 +402,19 @@ class AbstractLieSolver(diffrax.AbstractSolver):
         quaternions: which leaves of the ODE state are unit quaternions ``(..., 4)``: a pytree
             prefix of the state with ``True`` on each (e.g. ``(True, False, False)`` for
             ``(q, w, wheel_rates)``). ``None``: the state is the rigid body's ``(q, w)``.
+        layout: how the built-in steps (``LieEuler``, ``AbstractRKMK``) hold a quaternion leaf
+            inside a step: ``"components"`` (default), one array per component, the step's Lie
+            part element-wise over the batch; ``"rows"``, the ``(..., 4)`` rows. The same method
+            and values to rounding. Measured (``diffeqsolve`` with ``RKMK4``, ``RigidBody``,
+            1000 bodies x 1000 steps, float32, this 2-core CPU): the forward pass 85 against
+            600 ms, the gradient 0.83 against 3.8 s (diffrax's default adjoint), a ``vmap`` of
+            one-body solves 157 against 485 ms. ``"rows"`` for the optimal-control
+            transcription's small per-interval rollouts under second derivatives (Bilimoria-Wie,
+            80 intervals: solve 0.92 against 1.2-1.6 s, first call 8.9 against 10.1 s).
     """
 
     quaternions: Any = eqx.field(static=True, default=None, converter=QuaternionMask.of)
+    layout: str = eqx.field(static=True, default="components", converter=_layout)
     term_structure: ClassVar = diffrax.AbstractTerm
 
     @property
@@ -398,76 +499,73 @@ class AbstractRKMK(AbstractLieSolver):
         order = self.order(None)
         if order is None:
             raise TypeError(f"{type(self).__name__}.order must return the method's order, got None")
+        lay = _LAYOUTS[self.layout]
         leaves, tree = jax.tree.flatten(y0)
-        # local coordinates: theta (..., 3) on each quaternion leaf (q = q_n Exp(theta)), the leaf itself elsewhere
-        coords = [jnp.zeros(x.shape[:-1] + (3,), x.dtype) if f else x for f, x in zip(flags, leaves)]
+        # every value of a leaf is a tuple: the layout's parts on a quaternion leaf (q = q_n Exp(theta),
+        # theta its local coordinates), the array itself (a 1-tuple) elsewhere
+        parts = [lay.split(x) if f else (x,) for f, x in zip(flags, leaves)]
 
         def point(incr):
             return jax.tree.unflatten(
-                tree,
-                [
-                    _quaternion.multiply(x, _rotation.from_rotvec(d)) if f else x + d
-                    for f, x, d in zip(flags, leaves, incr)
-                ],
+                tree, [lay.point(qp, d) if f else x + d[0] for f, x, qp, d in zip(flags, leaves, parts, incr)]
             )
 
-        def slope(theta, g):
-            return [dexpinv(th, gi, order) if f else gi for f, th, gi in zip(flags, theta, g)]
+        def rates(g):
+            return [lay.rate(v) if f else (v,) for f, v in zip(flags, g)]
+
+        def slope(theta, w):
+            return [lay.dexpinv(th, wi, order) if f else wi for f, th, wi in zip(flags, theta, w)]
 
         def weigh(weights, ks):
             return [
-                jnp.tensordot(jnp.asarray(weights, k.dtype), k, axes=1, precision=_arrays.FULL) * h.astype(k.dtype)
-                for k in ks
+                tuple(
+                    jnp.tensordot(jnp.asarray(weights, k.dtype), k, axes=1, precision=_arrays.FULL) * h.astype(k.dtype)
+                    for k in kk
+                )
+                for kk in ks
             ]
+
+        def rows(values):
+            return jax.tree.unflatten(tree, [lay.rows(v) if f else v[0] for f, v in zip(flags, values)])
 
         h = jnp.asarray(h)
         if tab.fsal and solver_state is not None:
             g0 = jax.lax.cond(made_jump, lambda: tangent(t0, y0), lambda: solver_state)
         else:
             g0 = tangent(t0, y0)
-        zero = [jnp.zeros_like(x) for x in coords]
-        k0 = slope(zero, g0)
-        ks = [jnp.zeros((stages,) + k.shape, k.dtype).at[0].set(k) for k in k0]
+        k0 = rates(g0)  # dexp^-1 at theta = 0 is the identity
+        ks = [tuple(jnp.zeros((stages,) + x.shape, x.dtype).at[0].set(x) for x in k) for k in k0]
         a_arr, c_arr = jnp.asarray(a), jnp.asarray(c)
 
         def stage(i, carry):
             ks, _ = carry
             incr = weigh(a_arr[i], ks)
             g = tangent(t0 + c_arr[i].astype(jnp.result_type(t0, t1)) * (t1 - t0), point(incr))
-            th = [d if f else None for f, d in zip(flags, incr)]
-            k = slope(th, g)
-            return [kk.at[i].set(ki) for kk, ki in zip(ks, k)], g
+            k = slope(incr, rates(g))
+            return [tuple(b.at[i].set(x) for b, x in zip(kk, ki)) for kk, ki in zip(ks, k)], g
 
         ks, g_last = jax.lax.fori_loop(1, stages, stage, (ks, g0))
         incr = weigh(tab.b_sol, ks)
-        y1 = [
-            unit(_quaternion.multiply(x, _rotation.from_rotvec(d))) if f else x + d
-            for f, x, d in zip(flags, leaves, incr)
-        ]
+        ends = [lay.advance(qp, d) if f else ((x + d[0],), x + d[0]) for f, x, qp, d in zip(flags, leaves, parts, incr)]
+        y1 = jax.tree.unflatten(tree, [y for _, y in ends])
         y_error = None
         if isinstance(self, diffrax.AbstractAdaptiveSolver):
             err = weigh(tab.b_error, ks)
             # on a quaternion leaf q1 - q_n Exp(theta_1 - e) = q1 (0, e/2) + O(|e|^2): no second Exp
             y_error = jax.tree.unflatten(
-                tree,
-                [
-                    _quaternion.multiply(q, jnp.concatenate([jnp.zeros_like(e[..., :1]), 0.5 * e], -1)) if f else e
-                    for f, q, e in zip(flags, y1, err)
-                ],
+                tree, [lay.error(p, e) if f else e[0] for f, (p, _), e in zip(flags, ends, err)]
             )
-        y1 = jax.tree.unflatten(tree, y1)
         if not tab.fsal:
             return y1, y_error, None, None
         # FSAL: the last stage is the tangent at y1, so the end slopes of the local polynomial come free
-        k1 = slope([d if f else None for f, d in zip(flags, incr)], g_last)
-        mid = None if self.mid_weights is None else jax.tree.unflatten(tree, weigh(self.mid_weights, ks))
+        k1 = slope(incr, rates(g_last))
         dense = dict(
             y0=y0,
             y1=y1,
-            incr=jax.tree.unflatten(tree, incr),
-            d0=jax.tree.unflatten(tree, [k * h.astype(k.dtype) for k in k0]),
-            d1=jax.tree.unflatten(tree, [k * h.astype(k.dtype) for k in k1]),
-            mid=mid,
+            incr=rows(incr),
+            d0=rows([tuple(x * h.astype(x.dtype) for x in k) for k in k0]),
+            d1=rows([tuple(x * h.astype(x.dtype) for x in k) for k in k1]),
+            mid=None if self.mid_weights is None else rows(weigh(self.mid_weights, ks)),
         )
         return y1, y_error, dense, g_last
 
@@ -517,12 +615,16 @@ class LieEuler(AbstractLieSolver):
 
     def lie_step(self, tangent, t0, t1, h, y0, flags, solver_state, made_jump):
         # written out: diffrax's ButcherTableau needs two stages or more
+        lay = _LAYOUTS[self.layout]
         leaves, tree = jax.tree.flatten(y0)
         g = tangent(t0, y0)
-        y1 = [
-            unit(_quaternion.multiply(x, _rotation.from_rotvec(h * gi))) if f else x + h * gi
-            for f, x, gi in zip(flags, leaves, g)
-        ]
+        y1 = []
+        for f, x, gi in zip(flags, leaves, g):
+            if f:
+                q = lay.split(x)
+                y1.append(lay.advance(q, tuple(h * w for w in lay.rate(gi)))[1])
+            else:
+                y1.append(x + h * gi)
         return jax.tree.unflatten(tree, y1), None, None, None
 
 

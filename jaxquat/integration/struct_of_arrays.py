@@ -149,7 +149,7 @@ class EulerEquations:
         if self.torque is None:
             return self.acceleration(w, None)
         tau = self.torque(t, _rows_by_products(q), _rows_by_products(w), args)
-        return self.acceleration(w, _columns_by_products(tau))
+        return self.acceleration(w, columns_by_products(tau))
 
 
 def _rows_by_products(c: Comps) -> Array:
@@ -169,7 +169,7 @@ def _rows_by_products(c: Comps) -> Array:
     return _arrays.by_products(*c)
 
 
-def _columns_by_products(x: Array) -> Comps:
+def columns_by_products(x: Array) -> Comps:
     """The components of ``x`` ``(n, k)`` as :func:`split`, each by a product with a column of the
     identity (``x e_i``: exact for finite ``x``), with the cotangent gathered back through a
     matrix product (:func:`_gather_by_product`).
