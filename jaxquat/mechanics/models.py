@@ -74,6 +74,10 @@ class Quadrotor(eqx.Module):
         self.gravity = _checks.scalar_like(gravity, "gravity")
 
     def __call__(self, t, y: dict[str, Array], args) -> dict[str, Array]:
+        return _with_qdot(y, self.body_rate_field(t, y, args))
+
+    def body_rate_field(self, t, y: dict[str, Array], args) -> dict[str, Array]:
+        """The field with the body rate ``w`` in place of ``dq/dt`` (the Lie solvers' form)."""
         q, v, w = y["q"], y["v"], y["w"]
         thrust, torque = self.control(t, y, args)
         up = jnp.zeros_like(v).at[..., 2].set(1)
@@ -85,7 +89,7 @@ class Quadrotor(eqx.Module):
         return {
             "r": v,
             "v": accel,
-            "q": _rates.qdot_from_omega(q, w, "body"),
+            "q": w,
             "w": _rates.euler_body(self.inertia, w, torque),
         }
 
@@ -163,12 +167,21 @@ class ReactionWheelSpacecraft(eqx.Module):
         return _quaternion.rotate(y["q"], _arrays.matvec(self.inertia, y["w"]) + _arrays.matmul(y["h"], self.axes))
 
     def __call__(self, t, y: dict[str, Array], args) -> dict[str, Array]:
-        q, w, h = y["q"], y["w"], y["h"]
+        return _with_qdot(y, self.body_rate_field(t, y, args))
+
+    def body_rate_field(self, t, y: dict[str, Array], args) -> dict[str, Array]:
+        """The field with the body rate ``w`` in place of ``dq/dt`` (the Lie solvers' form)."""
+        w, h = y["w"], y["h"]
         u, external = self.control(t, y, args)
         u = self.wheel_torque(jnp.asarray(u, h.dtype), h)
         total = _arrays.matvec(self.inertia, w) + _arrays.matmul(h, self.axes)
         wdot = _arrays.symmetric_solve(self.inertia, external - _arrays.matmul(u, self.axes) - jnp.cross(w, total))
-        return {"q": _rates.qdot_from_omega(q, w, "body"), "w": wdot, "h": u}
+        return {"q": w, "w": wdot, "h": u}
+
+
+def _with_qdot(y: dict[str, Array], field: dict[str, Array]) -> dict[str, Array]:
+    """A body-rate field's values with ``dq/dt = q (0, w)/2`` on the attitude leaf."""
+    return {**field, "q": _rates.qdot_from_omega(y["q"], field["q"], "body")}
 
 
 def _limit(x: Any, name: str, axes: Array) -> Array:

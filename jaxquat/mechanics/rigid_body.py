@@ -62,8 +62,14 @@ class RigidBody(_Body):
     """
 
     def __call__(self, t, y, args):
+        w, w_dot = self.body_rate_field(t, y, args)
+        return 0.5 * _quaternion.multiply(y[0], _quaternion.pure(w)), w_dot
+
+    def body_rate_field(self, t, y, args):
+        """The same field in the Lie-algebra form the Lie solvers step in, ``(w_b, dw_b/dt)``:
+        the body rate in place of ``dq/dt`` (they read it directly instead of from ``dq/dt``)."""
         q, w = y
-        return 0.5 * _quaternion.multiply(q, _quaternion.pure(w)), self.angular_acceleration(t, q, w, args)
+        return w, self.angular_acceleration(t, q, w, args)
 
 
 class EulerParameterBody(_Body):
