@@ -332,10 +332,11 @@ class _ComponentLeaves:
     """A quaternion leaf as one array per component (``layout="components"``, the default): the
     Lie part of a step (``Exp``, the products, ``dexp^-1``, the norm step) written out on them as
     in :mod:`jaxquat.integration.struct_of_arrays`, element-wise over the batch. The vector field
-    still takes and returns rows: its argument is assembled and then multiplied by ``I_4``, its
-    value split by :func:`jaxquat.integration.struct_of_arrays.columns_by_products`; XLA on CPU
-    fuses neither product, so the field runs as row kernels of its own and the step's Lie part
-    as element-wise ones. Measured (``diffeqsolve`` with ``RKMK4``, ``RigidBody``, 1000 bodies x
+    still takes and returns rows: its argument is assembled and then multiplied by ``I_4``, and a
+    rate the solver read from ``qdot`` is split by
+    :func:`jaxquat.integration.struct_of_arrays.columns_by_products` (a model's own rates plainly:
+    :class:`_ModelRates`); XLA on CPU fuses neither product, so the field runs as row kernels of
+    its own and the step's Lie part as element-wise ones. Measured (``diffeqsolve`` with ``RKMK4``, ``RigidBody``, 1000 bodies x
     1000 steps, float32, this 2-core CPU, one run each): the forward pass 333 ms without the two
     products (XLA fused the field's rows into each component of every stage's slope), 365 ms
     with the first alone, 110 ms with the second alone, 85 ms with both; the row layout 600 ms."""
@@ -460,11 +461,13 @@ class AbstractLieSolver(diffrax.AbstractSolver):
             inside a step: ``"components"`` (default), one array per component, the step's Lie
             part element-wise over the batch; ``"rows"``, the ``(..., 4)`` rows. The same method
             and values to rounding. Measured (``diffeqsolve`` with ``RKMK4``, ``RigidBody``,
-            1000 bodies x 1000 steps, float32, this 2-core CPU): the forward pass 85 against
-            600 ms, the gradient 0.83 against 3.8 s (diffrax's default adjoint), a ``vmap`` of
-            one-body solves 157 against 485 ms. ``"rows"`` for the optimal-control
-            transcription's small per-interval rollouts under second derivatives (Bilimoria-Wie,
-            80 intervals: solve 0.92 against 1.2-1.6 s, first call 8.9 against 10.1 s).
+            1000 bodies x 1000 steps, float32, this 2-core CPU): the forward pass 25 against
+            92 ms, the gradient 0.31 against 0.61 s (diffrax's default adjoint), a ``vmap`` of
+            one-body solves 123 against 211 ms (with a vector field read through ``qdot``, as
+            before ``body_rate_field``: 85 against 600 ms, 0.83 against 3.8 s). ``"rows"`` for
+            the optimal-control transcription's small per-interval rollouts under second
+            derivatives (Bilimoria-Wie, 80 intervals: solve 0.92 against 1.2-1.6 s, first call
+            8.9 against 10.1 s).
     """
 
     quaternions: Any = eqx.field(static=True, default=None, converter=QuaternionMask.of)
