@@ -376,6 +376,11 @@ class _ComponentLeaves:
 _LAYOUTS = {"components": _ComponentLeaves, "rows": _RowLeaves}
 
 
+def _as_parts(x: Array) -> tuple[tuple[Array], Array]:
+    """A leaf that is not a quaternion as ``(parts, rows)``: one part, the array itself."""
+    return (x,), x
+
+
 def _layout(value: str) -> str:
     if value not in _LAYOUTS:
         raise ValueError(f"argument 'layout' must be one of {sorted(_LAYOUTS)}, got {value!r}")
@@ -614,7 +619,8 @@ class AbstractRKMK(AbstractLieSolver):
 
         ks, g_last = jax.lax.fori_loop(1, stages, stage, (ks, g0))
         incr = weigh(tab.b_sol, ks)
-        ends = [lay.advance(qp, d) if f else ((x + d[0],), x + d[0]) for f, x, qp, d in zip(flags, leaves, parts, incr)]
+        # (parts, rows) of each leaf at the step's end
+        ends = [lay.advance(qp, d) if f else _as_parts(x + d[0]) for f, x, qp, d in zip(flags, leaves, parts, incr)]
         y1 = jax.tree.unflatten(tree, [y for _, y in ends])
         y_error = None
         if isinstance(self, diffrax.AbstractAdaptiveSolver):
