@@ -63,7 +63,7 @@ class RigidBody(_Body):
 
     def __call__(self, t, y, args):
         w, w_dot = self.body_rate_field(t, y, args)
-        return 0.5 * _quaternion.multiply(y[0], _quaternion.pure(w)), w_dot
+        return _rates.qdot_from_omega(y[0], w, "body"), w_dot
 
     def body_rate_field(self, t, y, args):
         """The same field in the Lie-algebra form the Lie solvers step in, ``(w_b, dw_b/dt)``:
