@@ -77,7 +77,8 @@ class Quadrotor(eqx.Module):
         return _with_qdot(y, self.body_rate_field(t, y, args))
 
     def body_rate_field(self, t, y: dict[str, Array], args) -> dict[str, Array]:
-        """The field with the body rate ``w`` in place of ``dq/dt`` (the Lie solvers' form)."""
+        """The field with the body rate ``w`` (body frame) in place of ``dq/dt = q (0, w)/2``
+        ([S] eq. (16)): the form the Lie solvers step in."""
         q, v, w = y["q"], y["v"], y["w"]
         thrust, torque = self.control(t, y, args)
         up = jnp.zeros_like(v).at[..., 2].set(1)
@@ -170,7 +171,8 @@ class ReactionWheelSpacecraft(eqx.Module):
         return _with_qdot(y, self.body_rate_field(t, y, args))
 
     def body_rate_field(self, t, y: dict[str, Array], args) -> dict[str, Array]:
-        """The field with the body rate ``w`` in place of ``dq/dt`` (the Lie solvers' form)."""
+        """The field with the body rate ``w`` (body frame) in place of ``dq/dt = q (0, w)/2``
+        ([S] eq. (16)): the form the Lie solvers step in."""
         w, h = y["w"], y["h"]
         u, external = self.control(t, y, args)
         u = self.wheel_torque(jnp.asarray(u, h.dtype), h)

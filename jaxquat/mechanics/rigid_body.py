@@ -67,7 +67,9 @@ class RigidBody(_Body):
 
     def body_rate_field(self, t, y, args):
         """The same field in the Lie-algebra form the Lie solvers step in, ``(w_b, dw_b/dt)``:
-        the body rate in place of ``dq/dt`` (they read it directly instead of from ``dq/dt``)."""
+        the body rate in place of ``dq/dt = q (0, w_b)/2`` ([S] eq. (16)), body frame, and Euler's
+        equations ``dw_b/dt = I^-1 (M_b - w_b x I w_b)`` ([S] eq. (19)); the Lie solvers read the
+        rate from here instead of from ``dq/dt``."""
         q, w = y
         return w, self.angular_acceleration(t, q, w, args)
 
