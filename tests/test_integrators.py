@@ -407,12 +407,50 @@ def test_the_lie_solvers_scan_path_is_the_struct_of_arrays_step(monkeypatch):
         assert [len(tab.b) for tab in calls] == ([] if expected is None else [expected]), type(solver).__name__
 
 
+@pytest.mark.skipif(not X64, reason="a lowering test: its verdict does not depend on the dtype")
+def test_the_scan_path_step_is_one_loop_per_stage_on_cpu():
+    """The struct-of-arrays step's values go through one variadic ``reduce`` per stage but the last
+    and one for the step's result (``jaxquat._fusion.one_loop``: one XLA loop each on CPU), with a
+    torque two more per stage (the stage's components before the rows the torque takes, its
+    components after), and in reverse mode one for the cotangents of the step's inputs; without
+    ``one_loop`` none. Counted in the lowered program (``jax.export``, no compilation)."""
+    from jaxquat.integration import struct_of_arrays as soa
+
+    comps = tuple(jnp.ones((8,), DTYPE) for _ in range(7))
+    tab = soa.Tableau.of(jq.RKMK4.tableau, 4)
+
+    def step(euler, one_loop, c):
+        def field(t, q, w, args):
+            return w, euler(t, q, w, args)
+
+        q1, w1 = soa.rkmk_step(tab, field, 0.0, 0.01, c[:4], c[4:], None, euler.torque is not None, one_loop)
+        return q1 + w1
+
+    def reduces(fn):
+        return jax.export.export(jax.jit(fn), platforms=["cpu"])(comps).mlir_module().count("stablehlo.reduce")
+
+    inertia = jnp.diag(jnp.asarray(I_DIAG, DTYPE))
+    free = soa.EulerEquations(inertia, None, True)
+    pd = soa.EulerEquations(inertia, jax.vmap(lambda t, q, w, a: -q[1:] - w, in_axes=(None, 0, 0, None)), True)
+    assert reduces(lambda c: step(free, True, c)) == 4
+    assert reduces(lambda c: step(free, False, c)) == 0
+    assert reduces(lambda c: step(pd, True, c)) == 4 + 2 * 4
+
+    def loss(one_loop):
+        return lambda c: sum(jnp.sum(x) for x in step(free, one_loop, c))
+
+    # the stages' loops (their values are the backward pass's residuals) and the cotangents' loop;
+    # the result's loop and the loss's sums are not needed for the gradient, so not lowered
+    assert reduces(jax.grad(loss(True))) == 3 + 1
+    assert reduces(jax.grad(loss(False))) == 1  # the derivatives' test of |theta| (exp's mostly_small)
+
+
 def test_scan_path_gradient_and_unit_norm_in_float32_too():
     """Reverse mode through the scan path (jax.checkpoint per step) equals forward mode, torque-free
-    and with a PD torque whose gains are in ``args`` (its rows and columns pass through
-    ``struct_of_arrays``' products, whose derivative rule must serve both modes: the gains'
-    gradients agree to 1.8e-15 in float64 and 3.6e-7 in float32, measured), and the per-step
-    Newton renormalisation holds | |q| - 1 | at rounding level over 2000 steps."""
+    and with a PD torque whose gains are in ``args`` (its rows and columns pass through the
+    one-loop barriers of ``jaxquat._fusion``, whose derivative rules must serve both modes: the
+    gains' gradients agree to 2.2e-16 in float64 and 3.6e-7 in float32, measured in session 43),
+    and the per-step Newton renormalisation holds | |q| - 1 | at rounding level over 2000 steps."""
     inertia = jnp.diag(jnp.asarray(I_DIAG, DTYPE))
     q0 = jq.identity((), DTYPE)
     ts = np.asarray([0.0, 20.0])

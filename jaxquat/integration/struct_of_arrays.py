@@ -5,8 +5,10 @@ instead of ``(n, 4)`` and ``(n, 3)``, and one Runge-Kutta-Munthe-Kaas step (the 
 :class:`jaxquat.RKMK4` / :class:`jaxquat.LieEuler`: ``q_(n+1) = q_n Exp(theta_1)``,
 ``theta' = dexp^-1_theta(w_b)``, Euler's equations ``w_b' = I^-1 (M_b - w_b x I w_b)``) is
 written out component by component, its stages unrolled. Every operation is then element-wise
-over contiguous arrays: XLA fuses a step into a few loops over the batch, and reverse mode
-transposes element-wise operations into element-wise operations. In the row form
+over contiguous arrays: XLA fuses a step into a few loops over the batch (one per stage, through
+:mod:`jaxquat._fusion`; left to itself XLA's CPU compiler made one loop per output component,
+each evaluating most of the step again: :func:`rkmk_step`), and reverse mode transposes
+element-wise operations into element-wise operations. In the row form
 (``(n, 4)`` arrays) the transposes of the minor-axis slices, stacks and cross products become
 many separate kernels (the backward step compiled to 175 fusions against the forward's 24).
 
@@ -33,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .. import _arrays, _fusion, _quaternion, _safe
+from .. import _arrays, _fusion, _quaternion, _safe, _trig
 from .fixed_step import scan_steps
 
 Comps = tuple[Array, ...]
@@ -265,6 +267,8 @@ def rkmk_step(
     if one_loop:
         qz = _fusion.one_loop_backward(q + z)
         q, z = qz[: len(q)], qz[len(q) :]
+    # the derivatives' lax.cond would cut a loop in two; off the CPU there is no loop to cut
+    mostly_small = not (one_loop and _trig.on_cpu(lambda: True, lambda: False))
     ks: list[Comps] = []
     ls: list[Comps] = []
     for i in range(len(tab.b)):
@@ -278,7 +282,7 @@ def rkmk_step(
             # attitudes: XLA dropped them, but every trace of the step built them (tracing the
             # first simulate at batch 1000: 0.075 -> 0.055 s; one Adam step through it 0.30 ->
             # 0.24-0.26 s; the same values and gradients to the bit)
-            qi = multiply(q, exp(theta, not one_loop)) if field_reads_q else q
+            qi = multiply(q, exp(theta, mostly_small)) if field_reads_q else q
         wi, li = field(t0 + tab.c[i] * h, qi, zi, args)
         ki = wi if theta is None else dexpinv(theta, wi, tab.order)
         if one_loop and i < len(tab.b) - 1:  # the last stage's slopes go into the result's loop
@@ -288,7 +292,7 @@ def rkmk_step(
         ls.append(li)
     theta1 = _weighted(list(zip(tab.b, ks)), h)
     z1 = _add(z, _weighted(list(zip(tab.b, ls)), h))
-    q1 = unit(multiply(q, exp(theta1, not one_loop)))
+    q1 = unit(multiply(q, exp(theta1, mostly_small)))
     if not one_loop:
         return q1, z1
     qz = _fusion.one_loop(q1 + z1)
