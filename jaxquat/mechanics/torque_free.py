@@ -48,7 +48,7 @@ import numpy as np
 from jax import Array
 from jaxtyping import ArrayLike, Float
 
-from .. import _arrays, _checks, _quaternion, _rotation, _safe, _trig
+from .. import _arrays, _checks, _fusion, _quaternion, _rotation, _safe, _trig
 from .elliptic import (
     agm,
     am_given,
@@ -281,18 +281,27 @@ def _state_at(k: _Motion, t: Array) -> tuple[Array, Array]:
     # den = 1 - m sn0^2 sn_v^2, written as a sum of non-negative terms: near a spin about
     # the middle axis both products tend to 1 and the difference lost eps / den (1.5e-3
     # relative in float32 at t = 10 from w0 = (1e-6, 1, 1e-6), I = (1, 2, 3)).
-    sn_v, cn_v, dn_v = sn_cn_dn(am_given(lam * t, m, mc, *k.agm), m, mc)
+    # Each group of scalars below is computed in one loop, values and cotangents (_fusion): XLA's
+    # CPU compiler otherwise copies their producers (the AGM amplitude, Carlson's integrals) into
+    # every consumer. Measured (one body, 11 times, float64, one core, XLA's defaults): the
+    # compile of the value 2.8 -> 2.3 s, of its gradient 12.3 -> 8.5 s, of jacfwd 8.4 -> 6.3 s;
+    # 1000 bodies x 101 times, float32 / float64: value 137 / 245 -> 118 / 226 ms, gradient
+    # 870 / 2174 -> 803 / 2047 ms.
+    sn_v, cn_v, dn_v = _fusion.one_loop_both_ways(
+        jnp.broadcast_arrays(*sn_cn_dn(am_given(lam * t, m, mc, *k.agm), m, mc))
+    )
     den = cn0 * cn0 + sn0 * sn0 * dn_v * dn_v
     wc_t = (wc * cn_v - r_cb * wb_hat * dn0 * sn_v * dn_v) / den
     wb_hat_t = (wb_hat * cn_v * dn_v + wc * dn0 * sn_v / r_cb) / den
     abs_wa_t = (k.abs_wa * dn_v - k.g * k.amp_a * wb_hat * wc * sn_v * cn_v / r_cb) / den
+    wc_t, wb_hat_t, abs_wa_t = _fusion.one_loop_both_ways(jnp.broadcast_arrays(wc_t, wb_hat_t, abs_wa_t))
     w_t = (s * abs_wa_t)[..., None] * k.ea + (-sigma * s * wb_hat_t)[..., None] * k.eb + wc_t[..., None] * k.ec
 
     # Precession angle about the angular momentum; the amplitude at t again as (sn, cn) from the
     # rates, the unwrapped amplitude only supplying the whole number of turns.
-    snt, cnt = _unit_pair(r_cb * wb_hat_t, wc_t)
+    snt, cnt = _fusion.one_loop_both_ways(_unit_pair(r_cb * wb_hat_t, wc_t))
     theta_t = _trig.atan2(snt, cnt)
-    ht, st, ct = reduced_amplitude(snt, cnt)
+    ht, st, ct = _fusion.one_loop_both_ways(jnp.broadcast_arrays(*reduced_amplitude(snt, cnt)))
     sg = jax.lax.stop_gradient
     turns = jnp.round(sg(amplitude(k.u0 + lam * t, *k.agm) - theta_t) / (2 * jnp.pi))
     _, pi_part = legendre(st, ct * ct, partial_y(ct, m, mc), -k.nu)
@@ -302,6 +311,7 @@ def _state_at(k: _Motion, t: Array) -> tuple[Array, Array]:
         + ell * (ia - ic) / (ia * ic * lam) * (pi_t - k.pi0)
         + jnp.sign(ic - ia) * (_chi(2 * jnp.pi * turns + theta_t, snt, cnt, k.kb, k.kc) - k.chi0)
     )
+    (psi,) = _fusion.one_loop_both_ways((psi,))
     p_t = _rotation.minimal_rotation(k.e, k.moments * w_t / ell[..., None])
     sin_half, cos_half = _trig.sincos(psi / 2)
     r = _quaternion.scalar_vector(cos_half, k.e, sin_half)
