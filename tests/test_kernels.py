@@ -54,6 +54,36 @@ def test_one_loop_barriers_are_the_identity_to_the_bit(barrier):
     assert half[0].dtype == jnp.float16 and half[1].dtype == DTYPE
 
 
+_both_ways_jit = jax.jit(_fusion.one_loop_both_ways)
+_both_ways_grad = jax.jit(
+    jax.grad(lambda xs, w: sum(jnp.sum(a * b) for a, b in zip(_fusion.one_loop_both_ways(xs), w)))
+)
+
+
+@settings(max_examples=10, deadline=None)
+@given(seeds)
+def test_one_loop_passes_any_floats_and_their_cotangents_unchanged(seed):
+    """Random finite and non-finite values, three arrays of one fixed shape (one compilation): the
+    values pass to the bit, and the cotangents of a weighted sum are the weights, to the bit."""
+    rng = np.random.default_rng(seed)
+    special = np.array([0.0, -0.0, np.inf, -np.inf, np.nan, 1e-30], NP_DTYPE)
+    xs = tuple(
+        jnp.asarray(
+            np.where(
+                rng.random(12) < 0.3, rng.choice(special, 12), rng.normal(size=12) * 10.0 ** rng.integers(-8, 8, 12)
+            ),
+            DTYPE,
+        )
+        for _ in range(3)
+    )
+    w = tuple(jnp.asarray(rng.normal(size=12), DTYPE) for _ in range(3))
+    bits = np.uint64 if DTYPE == jnp.float64 else np.uint32
+    for got, want in zip(_both_ways_jit(xs), xs):
+        np.testing.assert_array_equal(np.asarray(got).view(bits), np.asarray(want).view(bits))
+    for got, want in zip(_both_ways_grad(xs, w), w):
+        np.testing.assert_array_equal(got, want)
+
+
 _through_plain = jax.jit(lambda x: _through(None, x))
 
 

@@ -159,7 +159,7 @@ class EulerEquations:
         and the torque's work into every use of its components (and, in reverse mode, the whole
         backward step into each cotangent). Measured (1000 bodies x 1000 RKMK4 steps, the PD law
         ``-k_p sign(q_w) q_v - k_d w``, float32, one core of this 2-core EPYC, median of 7): the
-        forward pass 19 ms, the gradient 85 ms, one ``jvp`` 43 ms; the rows formed as
+        forward pass 19 ms, the gradient 84 ms, one ``jvp`` 42 ms; the rows formed as
         ``sum_i c_i e_i^T`` and the columns taken by products with the identity (the form before)
         274 ms, 459 ms and 377 ms; with the torque's components fused forward only, a gradient of
         603 ms, and with the stage's fused forward only, 295 ms."""
@@ -260,8 +260,8 @@ def rkmk_step(
     compiles a kernel per output component, each evaluating most of the step again (3260 HLO
     operations in the seven kernels of the torque-free RKMK4 step). Measured (torque-free,
     1000 bodies x 1000 RKMK4 steps, one core of this 2-core EPYC, median of 7, float32 /
-    float64): forward 26.8 / 53.9 ms -> 5.8 / 11.9 ms, gradient 70.8 / 162 ms -> 24.5 / 72.0 ms,
-    one ``jvp`` 69.3 / 149 ms -> 15.5 / 30.4 ms. Tried: without the loops per stage (the whole
+    float64): forward 26.8 / 53.9 ms -> 5.9 / 11.9 ms, gradient 70.8 / 162 ms -> 25.1 / 69.3 ms,
+    one ``jvp`` 69.3 / 149 ms -> 15.5 / 30.5 ms. Tried: without the loops per stage (the whole
     step in one loop, forward 6.6 ms, gradient 28.7 ms, ``jvp`` 19.6 ms, float32); the stages'
     cotangents in one loop each as well (gradient 39.3 / 97.8 ms)."""
     if one_loop:
