@@ -93,8 +93,10 @@ def simulate(
     given) not exceeded, runs on a ``lax.scan`` over the steps instead of ``diffeqsolve`` (1.5x
     the throughput at 10^5 bodies, see ``docs/benchmarks.md``): ``LieEuler`` and the RKMK
     tableaus as the same method written on one array per state component
-    (:mod:`jaxquat.integration.struct_of_arrays`, whose reverse pass is element-wise too: the
-    gradient costs about 3x the forward pass instead of 12x), the splittings through their own
+    (:mod:`jaxquat.integration.struct_of_arrays`, whose reverse pass is element-wise too, each
+    stage one loop over the batch on CPU: 1000 torque-free bodies x 1000 RKMK4 steps take 5.9 ms
+    and their gradient 25 ms in float32 on one core, against 13.8 ms and 174 ms for the generic
+    Lie step in :func:`jaxquat.solve_fixed_steps`), the splittings through their own
     ``init``/``step`` (:func:`jaxquat.solve_fixed_steps`). Every interval
     ``[ts[i], ts[i+1]]`` is split into the same number
     ``ceil(max_i |ts[i+1] - ts[i]| / |dt0|)`` of equal steps, so no step exceeds
