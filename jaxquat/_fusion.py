@@ -35,8 +35,12 @@ from collections.abc import Sequence
 
 import jax.numpy as jnp
 from jax import Array, lax
-from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
+
+try:  # jax >= 0.4.36; pyproject allows 0.4.30, where jax.core still held it
+    from jax.extend.core import Primitive
+except ImportError:  # pragma: no cover
+    from jax.core import Primitive  # pyright: ignore[reportAttributeAccessIssue]
 
 _one_loop_p = Primitive("jaxquat_one_loop")
 _one_loop_p.multiple_results = True
