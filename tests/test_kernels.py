@@ -23,6 +23,8 @@ from jaxquat import _arrays, _fusion, _quaternion, _safe, _trig
 EPS = float(np.finfo(NP_DTYPE).eps)
 
 
+BITS = np.uint64 if X64 else np.uint32  # a float's bits, to compare values to the bit
+
 BARRIERS = {
     "one_loop": _fusion.one_loop,
     "one_loop_backward": _fusion.one_loop_backward,
@@ -45,11 +47,10 @@ def test_one_loop_barriers_are_the_identity_to_the_bit(barrier):
     tiny = float(np.finfo(NP_DTYPE).smallest_subnormal)
     x = jnp.asarray([0.0, -0.0, 1.5, -2.25, np.inf, -np.inf, np.nan, tiny, -tiny, 3e38], DTYPE)
     y = x[::-1]
-    bits = np.uint64 if DTYPE == jnp.float64 else np.uint32
     for out in (jax.jit(BARRIERS[barrier])((x, y)), BARRIERS[barrier]((x, y))):
         for got, want in zip(out, (x, y)):
             assert got.dtype == want.dtype
-            np.testing.assert_array_equal(np.asarray(got).view(bits), np.asarray(want).view(bits))
+            np.testing.assert_array_equal(np.asarray(got).view(BITS), np.asarray(want).view(BITS))
     half = jax.jit(BARRIERS[barrier])((x.astype(jnp.float16), y))
     assert half[0].dtype == jnp.float16 and half[1].dtype == DTYPE
 
@@ -77,9 +78,8 @@ def test_one_loop_passes_any_floats_and_their_cotangents_unchanged(seed):
         for _ in range(3)
     )
     w = tuple(jnp.asarray(rng.normal(size=12), DTYPE) for _ in range(3))
-    bits = np.uint64 if DTYPE == jnp.float64 else np.uint32
     for got, want in zip(_both_ways_jit(xs), xs):
-        np.testing.assert_array_equal(np.asarray(got).view(bits), np.asarray(want).view(bits))
+        np.testing.assert_array_equal(np.asarray(got).view(BITS), np.asarray(want).view(BITS))
     for got, want in zip(_both_ways_grad(xs, w), w):
         np.testing.assert_array_equal(got, want)
 

@@ -68,6 +68,13 @@ def _weighted(terms: Sequence[tuple[float, Comps]], scale: Any = 1.0) -> Comps:
     return tuple(scale * x for x in out)
 
 
+def _paired(barrier: Callable, a: Comps, b: Comps) -> tuple[Comps, Comps]:
+    """``a`` and ``b`` passed through one :mod:`jaxquat._fusion` barrier together (one loop for
+    both), split back."""
+    ab = barrier(tuple(a) + tuple(b))
+    return ab[: len(a)], ab[len(a) :]
+
+
 def _add(a: Comps, b: Comps) -> Comps:
     return tuple(x + y for x, y in zip(a, b))
 
@@ -165,15 +172,17 @@ class EulerEquations:
         603 ms, and with the stage's fused forward only, 295 ms."""
         if self.torque is None:
             return self.acceleration(w, None)
-        qw = _fusion.one_loop_both_ways(q + w)
-        tau = self.torque(t, stack(qw[: len(q)]), stack(qw[len(q) :]), args)
+        q_loop, w_loop = _paired(_fusion.one_loop_both_ways, q, w)
+        tau = self.torque(t, stack(q_loop), stack(w_loop), args)
         return self.acceleration(w, _fusion.one_loop_both_ways(split(tau)))
 
 
 def columns_by_products(x: Array) -> Comps:
     """The components of ``x`` ``(n, k)`` as :func:`split`, each by a product with a column of the
     identity (``x e_i``: exact for finite ``x``), with the cotangent gathered back through a
-    matrix product (:func:`_gather_by_product`).
+    matrix product (:func:`_gather_by_product`). Used by the Lie solvers' component layout
+    (``jaxquat.integration.lie_solvers``) for a rate read from ``qdot``; ``simulate``'s scan path
+    used it for the torque's components until session 43 (now :mod:`jaxquat._fusion`'s loops).
 
     Not :func:`split`: under XLA's CPU fusion emitters (jaxlib 0.10.2, its default) the backward
     step fused the torque's cotangent, gathered by element-wise ops (the pads that transpose the
@@ -265,8 +274,7 @@ def rkmk_step(
     step in one loop, forward 6.6 ms, gradient 28.7 ms, ``jvp`` 19.6 ms, float32); the stages'
     cotangents in one loop each as well (gradient 39.3 / 97.8 ms)."""
     if one_loop:
-        qz = _fusion.one_loop_backward(q + z)
-        q, z = qz[: len(q)], qz[len(q) :]
+        q, z = _paired(_fusion.one_loop_backward, q, z)
     # the derivatives' lax.cond would cut a loop in two; off the CPU there is no loop to cut
     mostly_small = not (one_loop and _trig.on_cpu(lambda: True, lambda: False))
     ks: list[Comps] = []
@@ -286,17 +294,13 @@ def rkmk_step(
         wi, li = field(t0 + tab.c[i] * h, qi, zi, args)
         ki = wi if theta is None else dexpinv(theta, wi, tab.order)
         if one_loop and i < len(tab.b) - 1:  # the last stage's slopes go into the result's loop
-            kl = _fusion.one_loop(tuple(ki) + tuple(li))
-            ki, li = kl[: len(ki)], kl[len(ki) :]
+            ki, li = _paired(_fusion.one_loop, ki, li)
         ks.append(ki)
         ls.append(li)
     theta1 = _weighted(list(zip(tab.b, ks)), h)
     z1 = _add(z, _weighted(list(zip(tab.b, ls)), h))
     q1 = unit(multiply(q, exp(theta1, mostly_small)))
-    if not one_loop:
-        return q1, z1
-    qz = _fusion.one_loop(q1 + z1)
-    return qz[: len(q1)], qz[len(q1) :]
+    return _paired(_fusion.one_loop, q1, z1) if one_loop else (q1, z1)
 
 
 def solve(tab: Tableau, euler: EulerEquations, ts: Array, q0: Array, w0: Array, args: Any, substeps: int):
