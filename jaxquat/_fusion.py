@@ -27,6 +27,20 @@ each end in one loop over the batch. A ``custom_jvp`` cannot give the cotangents
 their own, and ``jax.custom_derivatives.linear_call``, which can, has no ``vmap`` rule (jax
 0.10.2). Elsewhere than on CPU (XLA's GPU compiler fuses multiple outputs itself) both lower
 to the identity.
+
+Under ``jvp`` a ``one_loop`` binds its values and their tangents together, so the loop that
+computes the tangents (which needs the values' intermediates anyway) writes the values too,
+instead of a second loop recomputing them: one ``jvp`` through the scan path (1000 bodies x
+1000 RKMK4 steps, one core, median of 7, two runs) 15.3-15.8 -> 12.6-12.9 ms in float32,
+torque-free, and 73.9-76.6 -> 62.3-64.1 ms in float64 with a PD torque. Where the two are
+evaluated apart, the bind is split again: ``linearize`` (and so ``grad``) partially evaluates
+the ``jvp`` with the values known and the tangents not, and remat (``jax.checkpoint``) does
+the same through ``partial_eval_jaxpr_custom``; without the two rules below the values would
+come out unknown and the transpose would fail (``tests/test_kernels.py`` runs both modes
+mixed). ``vmap`` binds mapped and unmapped operands apart (``jacfwd`` maps only the tangents,
+and its values must stay unmapped; binding all with the values broadcast, 3-column
+``jacfwd`` took 36.9 against 34.1 ms). The rules use JAX's extension points for primitives
+(``jax.interpreters.partial_eval``'s rule tables), not its private modules.
 """
 
 from __future__ import annotations
@@ -36,11 +50,12 @@ from collections.abc import Sequence
 import jax.numpy as jnp
 from jax import Array, lax
 from jax.interpreters import ad, batching, mlir
+from jax.interpreters import partial_eval as pe
 
-try:  # jax >= 0.4.36; pyproject allows 0.4.30, where jax.core still held it
-    from jax.extend.core import Primitive
+try:  # jax >= 0.4.36; pyproject allows 0.4.30, where jax.core still held them
+    from jax.extend.core import Literal, Primitive
 except ImportError:  # pragma: no cover
-    from jax.core import Primitive  # pyright: ignore[reportAttributeAccessIssue]
+    from jax.core import Literal, Primitive  # pyright: ignore[reportAttributeAccessIssue]
 
 _one_loop_p = Primitive("jaxquat_one_loop")
 _one_loop_p.multiple_results = True
@@ -105,19 +120,81 @@ def _lower(ctx, *xs, values: bool):
 
 
 def _transpose(cts, *xs, values: bool):
-    cts = [ad.instantiate_zeros(c) for c in cts]
-    return _one_loop_p.bind(*cts, values=not values)
+    linear = [ad.is_undefined_primal(x) for x in xs]
+    cts = [ad.instantiate_zeros(c) for c, lin in zip(cts, linear) if lin]
+    out = iter(_one_loop_p.bind(*cts, values=not values))
+    return [next(out) if lin else None for lin in linear]
+
+
+def _jvp(primals, tangents, *, values: bool):
+    """Values and their nonzero tangents in one bind (one loop on CPU); the partial-evaluation rules
+    below split it again wherever the two are evaluated apart (``linearize``, ``grad``, remat)."""
+    nonzero = [type(t) is not ad.Zero for t in tangents]
+    given = [t for t, nz in zip(tangents, nonzero) if nz]
+    if values:
+        outs = _one_loop_p.bind(*primals, *given, values=True)
+        out, rest = list(outs[: len(primals)]), iter(outs[len(primals) :])
+    else:
+        out = _one_loop_p.bind(*primals, values=False)
+        rest = iter(_one_loop_p.bind(*given, values=False) if given else [])
+    return out, [next(rest) if nz else t for t, nz in zip(tangents, nonzero)]
+
+
+def _parts(flags, xs):
+    return [x for x, f in zip(xs, flags) if f], [x for x, f in zip(xs, flags) if not f]
+
+
+def _partial_eval(trace, *tracers, values: bool):
+    """``JaxprTrace`` (``linearize``): the known operands bound apart from the unknown ones."""
+    known = [t.pval.is_known() for t in tracers]
+    if all(known) or not any(known):
+        return trace.default_process_primitive(_one_loop_p, tracers, dict(values=values))
+    a, b = _parts(known, tracers)
+    out_a = iter(trace.default_process_primitive(_one_loop_p, a, dict(values=values)))
+    out_b = iter(trace.default_process_primitive(_one_loop_p, b, dict(values=values)))
+    return [next(out_a) if k else next(out_b) for k in known]
+
+
+def _partial_eval_custom(saveable, unks_in, inst_in, eqn):
+    """``partial_eval_jaxpr_custom`` (remat): the known operands are bound on the known side and
+    recomputed on the staged side (the values pass unchanged, so recomputing costs a copy), the
+    unknown ones staged."""
+    del saveable
+    if all(unks_in):
+        return None, eqn, [True] * len(unks_in), [True] * len(unks_in), []
+    known = [not u for u in unks_in]
+    ins, _ = _parts(known, eqn.invars)
+    outs, _ = _parts(known, eqn.outvars)
+    eqn_known = eqn.replace(invars=ins, outvars=outs)
+    residuals = [v for v, k, inst in zip(eqn.invars, known, inst_in) if k and not inst and not isinstance(v, Literal)]
+    return eqn_known, eqn, list(unks_in), [True] * len(unks_in), residuals
+
+
+def _dce(used_outs, eqn):
+    if not any(used_outs):
+        return [False] * len(used_outs), None
+    ins, _ = _parts(used_outs, eqn.invars)
+    outs, _ = _parts(used_outs, eqn.outvars)
+    return list(used_outs), eqn.replace(invars=ins, outvars=outs)
 
 
 def _batch(args, dims, *, values: bool):
-    size = next(a.shape[d] for a, d in zip(args, dims) if d is not None)
-    moved = [jnp.broadcast_to(a, (size, *a.shape)) if d is None else jnp.moveaxis(a, d, 0) for a, d in zip(args, dims)]
-    return _one_loop_p.bind(*moved, values=values), [0] * len(moved)
+    """Mapped and unmapped operands bound apart, so an unmapped value stays unmapped (``jacfwd``
+    maps the tangents only)."""
+    mapped = [d is not None for d in dims]
+    a, b = _parts(mapped, [jnp.moveaxis(x, d, 0) if d is not None else x for x, d in zip(args, dims)])
+    out_a = iter(_one_loop_p.bind(*a, values=values))
+    out_b = iter(_one_loop_p.bind(*b, values=values) if b else [])
+    return [next(out_a) if m else next(out_b) for m in mapped], [0 if m else None for m in mapped]
 
 
 _one_loop_p.def_impl(lambda *xs, values: list(xs))
 _one_loop_p.def_abstract_eval(_abstract)
 mlir.register_lowering(_one_loop_p, _lower)
 mlir.register_lowering(_one_loop_p, _lower_cpu, platform="cpu")
-ad.deflinear2(_one_loop_p, _transpose)
+ad.primitive_jvps[_one_loop_p] = _jvp
+ad.primitive_transposes[_one_loop_p] = _transpose
 batching.primitive_batchers[_one_loop_p] = _batch
+pe.custom_partial_eval_rules[_one_loop_p] = _partial_eval
+pe.partial_eval_jaxpr_custom_rules[_one_loop_p] = _partial_eval_custom
+pe.dce_rules[_one_loop_p] = _dce

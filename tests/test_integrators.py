@@ -412,8 +412,9 @@ def test_the_scan_path_step_is_one_loop_per_stage_on_cpu():
     """The struct-of-arrays step's values go through one variadic ``reduce`` per stage but the last
     and one for the step's result (``jaxquat._fusion.one_loop``: one XLA loop each on CPU), with a
     torque two more per stage (the stage's components before the rows the torque takes, its
-    components after), and in reverse mode one for the cotangents of the step's inputs; without
-    ``one_loop`` none. Counted in the lowered program (``jax.export``, no compilation)."""
+    components after), and in reverse mode one for the cotangents of the step's inputs; under
+    ``jvp`` the values and their tangents share each loop (4, not 8); without ``one_loop`` none.
+    Counted in the lowered program (``jax.export``, no compilation)."""
     from jaxquat.integration import struct_of_arrays as soa
 
     comps = tuple(jnp.ones((8,), DTYPE) for _ in range(7))
@@ -435,6 +436,7 @@ def test_the_scan_path_step_is_one_loop_per_stage_on_cpu():
     assert reduces(lambda c: step(free, True, c)) == 4
     assert reduces(lambda c: step(free, False, c)) == 0
     assert reduces(lambda c: step(pd, True, c)) == 4 + 2 * 4
+    assert reduces(lambda c: jax.jvp(functools.partial(step, free, True), (c,), (c,))) == 4
 
     def loss(one_loop):
         return lambda c: sum(jnp.sum(x) for x in step(free, one_loop, c))

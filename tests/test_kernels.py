@@ -9,6 +9,7 @@ differences, the Hamilton product in rows).
 """
 
 import math
+import re
 
 import jax
 import jax.numpy as jnp
@@ -89,10 +90,14 @@ _through_plain = jax.jit(lambda x: _through(None, x))
 
 @pytest.mark.parametrize("barrier", sorted(BARRIERS))
 def test_one_loop_barriers_are_the_identity_to_every_transform(barrier):
-    """``grad``, ``jvp``, ``jacfwd``, the Hessian, ``vmap`` (with an unbatched operand) and
-    ``jax.checkpoint`` through a step with the barriers equal the step without them (to a few
-    ulps: the loops' boundaries move where the compiler contracts products into fused
-    multiply-adds, measured up to 1.4e-14 in a float64 Hessian), and ``check_grads`` passes."""
+    """``grad``, ``jvp``, ``jacfwd``, ``linearize``, the Hessian both ways, a Hessian-vector
+    product, the gradient of a ``jvp``, ``vmap`` (with an unbatched operand) and ``jax.checkpoint``
+    (nothing saved, and everything saved) through a step with the barriers equal the step without
+    them (to a few ulps: the loops' boundaries move where the compiler contracts products into
+    fused multiply-adds, measured up to 1.4e-14 in a float64 Hessian), and ``check_grads`` passes.
+    Under ``jvp`` values and tangents share one bind, which ``linearize`` and remat must split
+    again (the partial-evaluation rules of ``jaxquat._fusion``): the transforms that mix the
+    modes are the ones that would fail without them."""
     x = jnp.asarray(np.random.default_rng(2).uniform(0.1, 1.0, size=(5,)), DTYPE)
     dx = jnp.asarray(np.random.default_rng(3).normal(size=(5,)), DTYPE)
 
@@ -108,7 +113,13 @@ def test_one_loop_barriers_are_the_identity_to_every_transform(barrier):
         lambda f: jax.jvp(f, (x,), (dx,))[1],
         lambda f: jax.jacfwd(cost(f))(x),
         lambda f: jax.hessian(cost(f))(x),
+        lambda f: jax.jacrev(jax.jacfwd(cost(f)))(x),
+        lambda f: jax.jvp(jax.grad(cost(f)), (x,), (dx,))[1],
+        lambda f: jax.grad(lambda x: jax.jvp(cost(f), (x,), (dx,))[1])(x),
+        lambda f: jax.linearize(f, x)[1](dx),
         lambda f: jax.grad(jax.checkpoint(cost(f)))(x),
+        lambda f: jax.jacfwd(jax.grad(jax.checkpoint(cost(f))))(x),
+        lambda f: jax.grad(jax.checkpoint(cost(f), policy=jax.checkpoint_policies.everything_saveable))(x),
         lambda f: jax.vmap(jax.grad(cost(f)))(jnp.stack([x, 2 * x])),
     ):
         got, want = jax.jit(lambda t=transform: t(step))(), jax.jit(lambda t=transform: t(_through_plain))()
@@ -121,10 +132,10 @@ def test_one_loop_barriers_are_the_identity_to_every_transform(barrier):
 
 @pytest.mark.skipif(not X64, reason="a lowering test: its verdict does not depend on the dtype")
 def test_one_loop_lowers_to_a_variadic_reduce_on_cpu_only():
-    """On CPU ``one_loop`` lowers its values (and, under ``jvp``, its tangents) to one variadic
-    ``reduce`` with an operand per array, and ``one_loop_backward`` lowers its cotangents so
-    under ``grad``; the other kind lowers to nothing. For a GPU (lowered here without one, by
-    ``jax.export``) neither is a ``reduce``."""
+    """On CPU ``one_loop`` lowers its values to one variadic ``reduce`` with an operand per array,
+    under ``jvp`` its values and tangents together (one ``reduce``, six operands), and
+    ``one_loop_backward`` lowers its cotangents so under ``grad``; the other kind lowers to
+    nothing. For a GPU (lowered here without one, by ``jax.export``) neither is a ``reduce``."""
     x = jnp.ones((7,), DTYPE)
 
     def reduces(fn, *args, platform="cpu"):
@@ -139,13 +150,33 @@ def test_one_loop_lowers_to_a_variadic_reduce_on_cpu_only():
 
     assert reduces(three(_fusion.one_loop), x) == 1
     assert reduces(three(_fusion.one_loop_backward), x) == 0
-    assert reduces(lambda x, d: jax.jvp(three(_fusion.one_loop), (x,), (d,)), x, x) == 2
+    assert reduces(lambda x, d: jax.jvp(three(_fusion.one_loop), (x,), (d,)), x, x) == 1
+    jvp_text = jax.export.export(jax.jit(lambda x, d: jax.jvp(three(_fusion.one_loop), (x,), (d,))), platforms=["cpu"])
+    assert re.search(r"%\w+:6 = stablehlo\.reduce\(", jvp_text(x, x).mlir_module())  # six results
     assert reduces(lambda x, d: jax.jvp(three(_fusion.one_loop_backward), (x,), (d,)), x, x) == 0
     plain_grad = reduces(jax.grad(loss(lambda xs: tuple(xs))), x)  # the loss's own sums
     assert reduces(jax.grad(loss(_fusion.one_loop_backward)), x) == plain_grad + 1
     assert reduces(jax.grad(loss(_fusion.one_loop)), x) == plain_grad
     assert reduces(three(_fusion.one_loop_both_ways), x, platform="cuda") == 0
     assert reduces(jax.grad(loss(_fusion.one_loop_both_ways)), x, platform="cuda") == plain_grad
+
+
+def test_one_loop_keeps_only_the_arrays_that_are_used():
+    """Dead-code elimination drops an unused array from the bind (its loop computes the rest), and
+    a ``vmap`` with one operand unmapped binds it apart and leaves it unmapped (``jacfwd`` maps
+    the tangents only, and its value must come out unmapped)."""
+    from jax.interpreters import partial_eval as pe
+
+    x = jnp.arange(3.0, dtype=DTYPE)
+    for barrier in BARRIERS.values():
+        jaxpr = jax.make_jaxpr(lambda a, b, barrier=barrier: barrier((a * 2, b + 1)))(x, x).jaxpr
+        kept, used_inputs = pe.dce_jaxpr(jaxpr, [False, True])
+        binds = [e for e in kept.eqns if e.primitive.name == "jaxquat_one_loop"]
+        assert used_inputs == [False, True]
+        assert [len(e.invars) for e in binds] == [1] * len(binds) and binds
+        value, batch = jax.vmap(barrier, in_axes=((None, 0),), out_axes=(None, 0))((x, jnp.stack([x, -x])))
+        np.testing.assert_array_equal(value, x)
+        np.testing.assert_array_equal(batch, jnp.stack([x, -x]))
 
 
 def test_one_loop_rejects_arrays_of_different_shapes():
