@@ -188,7 +188,8 @@ def symmetric_inverse(inertia: Array) -> Array:
     """``I^-1`` ``(..., 3, 3)`` for symmetric ``I`` by :func:`symmetric_solve` against the unit
     vectors (row ``j`` is ``I^-1 e_j``, which is column ``j`` as ``I^-1`` is symmetric): for
     callers that apply one tensor's inverse many times (each integration step) as products."""
-    return symmetric_solve(inertia[..., None, :, :], jnp.eye(3, dtype=inertia.dtype))
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=inertia.dtype), inertia.shape[:-2] + (3, 3))  # explicit ranks
+    return symmetric_solve(inertia[..., None, :, :], eye)
 
 
 def valid_weights(weights: Array) -> Array:

@@ -5,6 +5,7 @@ splittings, measured convergence orders, gradients through the solve, batching."
 from __future__ import annotations
 
 import functools
+import re
 import os
 import subprocess
 import sys
@@ -421,10 +422,12 @@ def test_the_scan_path_step_is_one_loop_per_stage_on_cpu():
     tab = soa.Tableau.of(jq.RKMK4.tableau, 4)
 
     def step(euler, one_loop, c):
-        def field(t, q, w, args):
-            return w, euler(t, q, w, args)
+        def field(t, q, w, args, entries):
+            return w, euler.with_entries(entries)(t, q, w, args)
 
-        q1, w1 = soa.rkmk_step(tab, field, 0.0, 0.01, c[:4], c[4:], None, euler.torque is not None, one_loop)
+        q1, w1 = soa.rkmk_step(
+            tab, field, 0.0, 0.01, c[:4], c[4:], None, euler.torque is not None, one_loop, euler.entries()
+        )
         return q1 + w1
 
     def reduces(fn):
@@ -445,6 +448,15 @@ def test_the_scan_path_step_is_one_loop_per_stage_on_cpu():
     # the result's loop and the loss's sums are not needed for the gradient, so not lowered
     assert reduces(jax.grad(loss(True))) == 3 + 1
     assert reduces(jax.grad(loss(False))) == 1  # the derivatives' test of |theta| (exp's mostly_small)
+
+    # a full tensor's gradient: its 18 entries (the tensor's and its inverse's) come out of the
+    # cotangents' loop per body (18 operands: the state is not differentiated here) and are summed
+    # over the batch after it; left out, each entry's sum was a reduction over the backward step
+    def inertia_loss(tensor):
+        return sum(jnp.sum(x) for x in step(soa.EulerEquations(tensor, None, False), True, comps))
+
+    text = jax.export.export(jax.jit(jax.grad(inertia_loss)), platforms=["cpu"])(inertia).mlir_module()
+    assert re.search(r"%\w+:18 = stablehlo\.reduce\(", text)
 
 
 def test_scan_path_gradient_and_unit_norm_in_float32_too():

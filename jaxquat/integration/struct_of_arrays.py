@@ -1,4 +1,6 @@
-"""The rigid body's fixed-step Lie solvers in struct-of-arrays form: the scan path of ``simulate``.
+"""The rigid body's Lie solvers in struct-of-arrays form: the scan path of ``simulate``, and the step
+that the Lie solvers of :mod:`jaxquat.integration.lie_solvers` take on a rigid-body model
+(:func:`lie_step`: its error estimate and dense output too).
 
 A batch of ``n`` bodies is carried as seven arrays ``(n,)``, one per component of ``(q, w_b)``,
 instead of ``(n, 4)`` and ``(n, 3)``, and one Runge-Kutta-Munthe-Kaas step (the same method as
@@ -27,8 +29,9 @@ forward and 1331 ms gradient).
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -128,35 +131,59 @@ class EulerEquations:
     """``w_b' = I^-1 (M_b - w_b x I w_b)`` in components. ``inertia`` ``(3, 3)`` (shared) or
     ``(n, 3, 3)`` (per body); ``diagonal``: only its diagonal is read (a concrete diagonal
     tensor). ``torque``: ``fn(t, q (..., 4), w (..., 3), args) -> (..., 3)`` body torque on the
-    stacked rows (already vmapped over a batch), or None."""
+    stacked rows (already vmapped over a batch), or None.
+
+    The inertia's entries (:meth:`entries`) are what a step hands :meth:`with_entries` after its
+    input barrier: their cotangents then come out of the step's backward loop per body, and only
+    their sum over the batch is taken after it. Read directly, each entry's gradient was a
+    reduction of its own over the whole backward step, which XLA's CPU fusion emitters
+    (jaxlib 0.10.2, its default) compiled into code that re-evaluates the step's subgraphs once
+    per use: the gradient of 10 bodies x 1000 RKMK4 steps with respect to a full tensor took
+    34.8 s (8.9 s before session 43; 14 ms with the older emitters), 5 ms now."""
 
     def __init__(self, inertia: Array, torque: Callable | None, diagonal: bool):
         self.torque = torque
         self.diagonal = diagonal
         if diagonal:
             m = jnp.diagonal(inertia, axis1=-2, axis2=-1)
-            self.moments = split(m)
-            self.inverse = split(1 / m)
+            self._inertia, self._inverse = m, 1 / m
         else:
-            self.tensor = inertia
-            self.inverse_tensor = _arrays.symmetric_inverse(inertia)
+            self._inertia, self._inverse = inertia, _arrays.symmetric_inverse(inertia)
+        self._entries: Comps | None = None
 
-    def _apply(self, m: Array, v: Comps) -> Comps:
-        """``m v`` for a ``(..., 3, 3)`` matrix, its entries read where they are used (inside the
-        step): read once in ``__init__`` they were 18 scalar arrays made before the loop, each a
-        kernel XLA's CPU backend compiled on its own (the first RKMK4 ``simulate`` of 1000 bodies,
-        float32: 41 kernels and 0.44 s of XLA compilation, now 24 and 0.37 s; a call unchanged,
-        bit for bit)."""
-        return tuple(m[..., i, 0] * v[0] + m[..., i, 1] * v[1] + m[..., i, 2] * v[2] for i in range(3))
+    def entries(self) -> Comps:
+        """The arrays this reads: the moments and their inverses (diagonal), or the nine entries
+        of the tensor and of its inverse. Taken inside the step: read once before the loop they
+        were 18 scalar arrays, each a kernel XLA's CPU backend compiled on its own (the first
+        RKMK4 ``simulate`` of 1000 bodies, float32: 41 kernels and 0.44 s of XLA compilation,
+        against 24 and 0.37 s; a call unchanged, bit for bit)."""
+        if self._entries is not None:
+            return self._entries
+        if self.diagonal:
+            return split(self._inertia) + split(self._inverse)
+        return tuple(m[..., i, j] for m in (self._inertia, self._inverse) for i in range(3) for j in range(3))
+
+    def with_entries(self, entries: Comps) -> EulerEquations:
+        """A copy that reads ``entries`` (:meth:`entries`' layout, any broadcastable shapes)."""
+        new = copy.copy(self)
+        new._entries = tuple(entries)
+        return new
+
+    @staticmethod
+    def _apply(m: Comps, v: Comps) -> Comps:
+        """``m v`` for a matrix given as its nine entries, row by row."""
+        return tuple(m[3 * i] * v[0] + m[3 * i + 1] * v[1] + m[3 * i + 2] * v[2] for i in range(3))
 
     def acceleration(self, w: Comps, torque: Comps | None) -> Comps:
         """``I^-1 (M - w x I w)`` for the body torque ``M`` (None: 0)."""
-        h = tuple(m * x for m, x in zip(self.moments, w)) if self.diagonal else self._apply(self.tensor, w)
+        e = self.entries()
+        half = len(e) // 2
+        h = tuple(m * x for m, x in zip(e[:half], w)) if self.diagonal else self._apply(e[:half], w)
         gyro = cross(w, h)
         rhs = tuple(-g for g in gyro) if torque is None else tuple(m - g for m, g in zip(torque, gyro))
         if self.diagonal:
-            return tuple(r * x for r, x in zip(self.inverse, rhs))
-        return self._apply(self.inverse_tensor, rhs)
+            return tuple(r * x for r, x in zip(e[half:], rhs))
+        return self._apply(e[half:], rhs)
 
     def __call__(self, t, q: Comps, w: Comps, args) -> Comps:
         """The acceleration at a stage ``(q, w)``. With a torque, the stage's seven components are
@@ -254,10 +281,12 @@ def rkmk_step(
     args,
     field_reads_q: bool = True,
     one_loop: bool = False,
+    params: Comps = (),
 ) -> tuple[Comps, Comps]:
     """One RKMK step of ``tab`` from ``(q, z)`` at ``t0`` over ``h``, for the Lie-algebra field
-    ``field(t, q, z, args) -> (w_b, z')`` (the body rate on the quaternion, the derivative of the
-    other components ``z``): the stages ``theta_i = h sum_j a_ij k_j``,
+    ``field(t, q, z, args, params) -> (w_b, z')`` (the body rate on the quaternion, the derivative
+    of the other components ``z``; ``params``: arrays the field reads, handed back after the
+    step's input barrier, e.g. :meth:`EulerEquations.entries`): the stages ``theta_i = h sum_j a_ij k_j``,
     ``z_i = z + h sum_j a_ij l_j``, ``(w_i, l_i) = field(t0 + c_i h, q Exp(theta_i), z_i)``,
     ``k_i = dexp^-1_(theta_i)(w_i)``; then ``q Exp(h sum b_i k_i)`` (one Newton step on ``|q|``)
     and ``z + h sum b_i l_i``. ``field_reads_q=False``: ``field`` ignores its ``q``, so the stage
@@ -274,11 +303,64 @@ def rkmk_step(
     step in one loop, forward 6.6 ms, gradient 28.7 ms, ``jvp`` 19.6 ms, float32); the stages'
     cotangents in one loop each as well (gradient 39.3 / 97.8 ms)."""
     if one_loop:
-        q, z = _paired(_fusion.one_loop_backward, q, z)
-    # the derivatives' lax.cond would cut a loop in two; off the CPU there is no loop to cut
-    mostly_small = not (one_loop and _trig.on_cpu(lambda: True, lambda: False))
+        q, z, h, params, _ = _inputs(q, z, h, params)
+    ks, ls, _ = rkmk_stages(tab, field, t0, h, h, q, z, args, field_reads_q, one_loop, params=params)
+    q1, z1, _, _ = rkmk_combine(tab.b, h, q, z, ks, ls, one_loop)
+    return _paired(_fusion.one_loop, q1, z1) if one_loop else (q1, z1)
+
+
+def _inputs(q: Comps, z: Comps, h, params: Comps, first: tuple[Comps, Comps] | None = None):
+    """A step's inputs through one reverse-mode barrier (:func:`jaxquat._fusion.one_loop_backward`),
+    so that all their cotangents come out of one loop over the batch: ``(q, z)``, the step ``h``
+    and the field's ``params`` (each broadcast to the batch: their gradients are per body there
+    and summed over the batch after it), and a carried first stage. Any input left out would be
+    a reduction of its own over the whole backward step, compiled by XLA's CPU fusion emitters
+    into code that re-evaluates the step's subgraphs once per use (the gradient of 10 bodies x
+    1000 steps in seconds, not milliseconds: :class:`EulerEquations`)."""
+    shape = jnp.shape(q[0])
+    h = jnp.broadcast_to(jnp.asarray(h, jnp.result_type(q[0])), shape)
+    groups = [tuple(q), tuple(z), (h,), tuple(jnp.broadcast_to(p, shape) for p in params)]
+    if first is not None:
+        groups += [tuple(first[0]), tuple(first[1])]
+    flat = _fusion.one_loop_backward([x for g in groups for x in g])
+    out = []
+    for g in groups:
+        out.append(tuple(flat[: len(g)]))
+        flat = flat[len(g) :]
+    return out[0], out[1], out[2][0], out[3], None if first is None else (out[4], out[5])
+
+
+def _mostly_small(one_loop: bool) -> bool:
+    """``exp``'s ``mostly_small``: off in a one-loop step on CPU, where the derivatives' ``lax.cond``
+    would cut a loop in two (off the CPU there is no loop to cut)."""
+    return not (one_loop and _trig.on_cpu(lambda: True, lambda: False))
+
+
+def rkmk_stages(
+    tab: Tableau,
+    field: Callable,
+    t0,
+    dt,
+    h,
+    q: Comps,
+    z: Comps,
+    args,
+    field_reads_q: bool = True,
+    one_loop: bool = False,
+    first: tuple[Comps, Comps] | None = None,
+    params: Comps = (),
+) -> tuple[list[Comps], list[Comps], Comps]:
+    """The stages of :func:`rkmk_step`: the slopes ``k_i`` (on the quaternion's local coordinates)
+    and ``l_i`` (on ``z``) of every stage, and the last stage's body rate ``w_s`` (whose ``dexp^-1``
+    is ``k_s``). The stage times are ``t0 + c_i dt`` and the increments scale by ``h`` (the two
+    differ where diffrax flips the time axis). ``first``: the first stage's ``(w_1, l_1)`` when it
+    is known already (a first-same-as-last tableau's last stage of the step before). With
+    ``one_loop`` each stage's slopes but the last pass through one loop (the last stage goes into
+    the loop of whatever combines them)."""
+    mostly_small = _mostly_small(one_loop)
     ks: list[Comps] = []
     ls: list[Comps] = []
+    wi: Comps = ()
     for i in range(len(tab.b)):
         if i == 0:
             theta, qi, zi = None, q, z
@@ -291,16 +373,93 @@ def rkmk_step(
             # first simulate at batch 1000: 0.075 -> 0.055 s; one Adam step through it 0.30 ->
             # 0.24-0.26 s; the same values and gradients to the bit)
             qi = multiply(q, exp(theta, mostly_small)) if field_reads_q else q
-        wi, li = field(t0 + tab.c[i] * h, qi, zi, args)
+        if i == 0 and first is not None:
+            wi, li = first
+        else:
+            wi, li = field(t0 + tab.c[i] * dt, qi, zi, args, params)
         ki = wi if theta is None else dexpinv(theta, wi, tab.order)
-        if one_loop and i < len(tab.b) - 1:  # the last stage's slopes go into the result's loop
+        if one_loop and i < len(tab.b) - 1:
             ki, li = _paired(_fusion.one_loop, ki, li)
         ks.append(ki)
         ls.append(li)
-    theta1 = _weighted(list(zip(tab.b, ks)), h)
-    z1 = _add(z, _weighted(list(zip(tab.b, ls)), h))
-    q1 = unit(multiply(q, exp(theta1, mostly_small)))
-    return _paired(_fusion.one_loop, q1, z1) if one_loop else (q1, z1)
+    return ks, ls, wi
+
+
+def rkmk_combine(
+    weights: Sequence[float], h, q: Comps, z: Comps, ks: list[Comps], ls: list[Comps], one_loop: bool = False
+) -> tuple[Comps, Comps, Comps, Comps]:
+    """``(q Exp(theta), z + dz, theta, dz)`` with ``theta = h sum_i b_i k_i`` and
+    ``dz = h sum_i b_i l_i`` for the weights ``b_i`` (one Newton step on ``|q|``)."""
+    theta = _weighted(list(zip(weights, ks)), h)
+    dz = _weighted(list(zip(weights, ls)), h)
+    return unit(multiply(q, exp(theta, _mostly_small(one_loop)))), _add(z, dz), theta, dz
+
+
+class LieStep(NamedTuple):
+    """The parts of one step of a Lie solver on the rigid body, in components (:func:`lie_step`):
+    the state at the step's end, the increments ``theta = h sum b_i k_i`` and ``dz``, the error
+    estimate (``q1 (0, e/2)`` and ``e_z``; None without error weights), the dense output's end
+    slopes ``h (k_1, l_1)`` and ``h (dexp^-1_theta(w_s), l_s)``, its midpoint increments (None
+    without midpoint weights), and the last stage's ``(w_s, l_s)`` (the next step's first stage
+    for a first-same-as-last tableau)."""
+
+    q1: Comps
+    z1: Comps
+    theta: Comps
+    dz: Comps
+    error: tuple[Comps, Comps] | None
+    start: tuple[Comps, Comps]
+    end: tuple[Comps, Comps]
+    mid: tuple[Comps, Comps] | None
+    last: tuple[Comps, Comps]
+
+
+def lie_step(
+    tab: Tableau,
+    field: Callable,
+    t0,
+    dt,
+    h,
+    q: Comps,
+    z: Comps,
+    args,
+    field_reads_q: bool = True,
+    b_error: Sequence[float] | None = None,
+    mid_weights: Sequence[float] | None = None,
+    first: tuple[Comps, Comps] | None = None,
+    params: Comps = (),
+) -> LieStep:
+    """One RKMK step of ``tab`` as :func:`rkmk_step` computes it (each stage one loop on CPU, the
+    cotangents of ``(q, z)`` one loop), with everything a diffrax solver returns besides the state
+    (:class:`LieStep`) computed in the result's loop: what the Lie solvers of
+    :mod:`jaxquat.integration.lie_solvers` run on a rigid-body model (``euler_equations``)."""
+    q, z, h, params, first = _inputs(q, z, h, params, first)
+    ks, ls, w_last = rkmk_stages(tab, field, t0, dt, h, q, z, args, field_reads_q, True, first, params)
+    q1, z1, theta, dz = rkmk_combine(tab.b, h, q, z, ks, ls, True)
+    groups: list[Comps] = [q1, z1, theta, dz]
+    if b_error is not None:
+        e, e_z = _weighted(list(zip(b_error, ks)), h), _weighted(list(zip(b_error, ls)), h)
+        groups += [tuple(_quaternion.multiply_components(q1, (None, *(0.5 * x for x in e)))), e_z]
+    groups += [tuple(h * x for x in ks[0]), tuple(h * x for x in ls[0])]
+    groups += [tuple(h * x for x in dexpinv(theta, w_last, tab.order)), tuple(h * x for x in ls[-1])]
+    if mid_weights is not None:
+        groups += [_weighted(list(zip(mid_weights, ks)), h), _weighted(list(zip(mid_weights, ls)), h)]
+    groups += [w_last, ls[-1]]
+    flat = _fusion.one_loop([x for g in groups for x in g])
+    out: list[Comps] = []
+    for g in groups:
+        out.append(tuple(flat[: len(g)]))
+        flat = flat[len(g) :]
+    q1, z1, theta, dz = out[:4]
+    rest = out[4:]
+    error = None
+    if b_error is not None:
+        error, rest = (rest[0], rest[1]), rest[2:]
+    start, end, rest = (rest[0], rest[1]), (rest[2], rest[3]), rest[4:]
+    mid = None
+    if mid_weights is not None:
+        mid, rest = (rest[0], rest[1]), rest[2:]
+    return LieStep(q1, z1, theta, dz, error, start, end, mid, (rest[0], rest[1]))
 
 
 def solve(tab: Tableau, euler: EulerEquations, ts: Array, q0: Array, w0: Array, args: Any, substeps: int):
@@ -309,12 +468,14 @@ def solve(tab: Tableau, euler: EulerEquations, ts: Array, q0: Array, w0: Array, 
     args))``, driven by :func:`jaxquat.integration.fixed_step.scan_steps` (each step
     rematerialised in reverse mode), each step compiled as a few loops (``one_loop``)."""
 
-    def field(t, q, w, step_args):
-        return w, euler(t, q, w, step_args)
+    def field(t, q, w, step_args, entries):
+        return w, euler.with_entries(entries)(t, q, w, step_args)
 
     def step(y, t0, t1, step_args, jump):
         del jump  # no solver state to refresh
-        return rkmk_step(tab, field, t0, t1 - t0, y[0], y[1], step_args, euler.torque is not None, one_loop=True)
+        return rkmk_step(
+            tab, field, t0, t1 - t0, y[0], y[1], step_args, euler.torque is not None, True, euler.entries()
+        )
 
     qs, ws = scan_steps(step, ts, (split(q0), split(w0)), args, substeps=substeps)
     return stack(qs), stack(ws)

@@ -73,6 +73,14 @@ class RigidBody(_Body):
         q, w = y
         return w, self.angular_acceleration(t, q, w, args)
 
+    def euler_equations(self) -> tuple[Array, Callable | None]:
+        """``(inertia, torque)``: this field's ``dw_b/dt`` is Euler's equations ([S] eq. (19)) with
+        this body-frame tensor and body torque ``fn(t, q, w_b, args)`` (None: torque-free) on the
+        state's own shapes. The Lie solvers (``LieEuler``, the RKMK family) read them to step the
+        body one array per component (:mod:`jaxquat.integration.struct_of_arrays`) instead of
+        running this field on rows: the same method, each stage one loop over the batch."""
+        return self.inertia, self.torque
+
 
 class EulerParameterBody(_Body):
     """Vector field on ``y = (q, qdot)``: ``(qdot, qddot)`` from Chou's closed form [C] eq. (75).
