@@ -71,11 +71,21 @@ def _weighted(terms: Sequence[tuple[float, Comps]], scale: Any = 1.0) -> Comps:
     return tuple(scale * x for x in out)
 
 
+def _grouped(barrier: Callable, groups: Sequence[Comps]) -> list[Comps]:
+    """``groups`` passed through one :mod:`jaxquat._fusion` barrier together (one loop for all),
+    split back."""
+    flat = barrier([x for g in groups for x in g])
+    out = []
+    for g in groups:
+        out.append(tuple(flat[: len(g)]))
+        flat = flat[len(g) :]
+    return out
+
+
 def _paired(barrier: Callable, a: Comps, b: Comps) -> tuple[Comps, Comps]:
-    """``a`` and ``b`` passed through one :mod:`jaxquat._fusion` barrier together (one loop for
-    both), split back."""
-    ab = barrier(tuple(a) + tuple(b))
-    return ab[: len(a)], ab[len(a) :]
+    """``a`` and ``b`` through one barrier (:func:`_grouped`)."""
+    a, b = _grouped(barrier, [a, b])
+    return a, b
 
 
 def _add(a: Comps, b: Comps) -> Comps:
@@ -322,11 +332,7 @@ def _inputs(q: Comps, z: Comps, h, params: Comps, first: tuple[Comps, Comps] | N
     groups = [tuple(q), tuple(z), (h,), tuple(jnp.broadcast_to(p, shape) for p in params)]
     if first is not None:
         groups += [tuple(first[0]), tuple(first[1])]
-    flat = _fusion.one_loop_backward([x for g in groups for x in g])
-    out = []
-    for g in groups:
-        out.append(tuple(flat[: len(g)]))
-        flat = flat[len(g) :]
+    out = _grouped(_fusion.one_loop_backward, groups)
     return out[0], out[1], out[2][0], out[3], None if first is None else (out[4], out[5])
 
 
@@ -445,11 +451,7 @@ def lie_step(
     if mid_weights is not None:
         groups += [_weighted(list(zip(mid_weights, ks)), h), _weighted(list(zip(mid_weights, ls)), h)]
     groups += [w_last, ls[-1]]
-    flat = _fusion.one_loop([x for g in groups for x in g])
-    out: list[Comps] = []
-    for g in groups:
-        out.append(tuple(flat[: len(g)]))
-        flat = flat[len(g) :]
+    out = _grouped(_fusion.one_loop, groups)
     q1, z1, theta, dz = out[:4]
     rest = out[4:]
     error = None
