@@ -210,8 +210,8 @@ class EulerEquations:
         if self.torque is None:
             return self.acceleration(w, None)
         q_loop, w_loop = _paired(_fusion.one_loop_both_ways, q, w)
-        tau = self.torque(t, stack(q_loop), stack(w_loop), args)
-        return self.acceleration(w, _fusion.one_loop_both_ways(split(tau)))
+        tau = self.torque(t, stack(q_loop), stack(w_loop), args)  # in the state's dtype, as diffrax's terms
+        return self.acceleration(w, _fusion.one_loop_both_ways(split(jnp.asarray(tau, jnp.result_type(w[0])))))
 
 
 def columns_by_products(x: Array) -> Comps:
