@@ -443,9 +443,7 @@ def _rigid_body_parts(field: Callable, direction, args, flags: tuple[bool, ...])
     return _RigidBodyParts(inertia, torque, direction, args)
 
 
-def _rigid_body_step(
-    tab, b_error, mid_weights, parts: _RigidBodyParts, tangent, t0, t1, h, y0, solver_state, made_jump
-):
+def _rigid_body_step(tab: _SoATableau, parts: _RigidBodyParts, tangent, t0, t1, h, y0, solver_state, made_jump):
     """A Lie solver's step on a rigid-body model, in components
     (:func:`jaxquat.integration.struct_of_arrays.lie_step`, each stage one loop over the batch on
     CPU): the same method as the generic step, which runs the model's vector field on rows (the
@@ -469,7 +467,6 @@ def _rigid_body_step(
     if tab.fsal_state and solver_state is not None:
         g0 = jax.lax.cond(made_jump, lambda: tangent(t0, y0), lambda: solver_state)
         first = (soa.split(g0[0]), soa.split(g0[1]))
-    h = jnp.asarray(h).astype(q.dtype)
     out = soa.lie_step(
         tab.soa,
         field,
@@ -480,8 +477,8 @@ def _rigid_body_step(
         soa.split(w),
         parts.args,
         parts.torque is not None,
-        b_error,
-        mid_weights,
+        tab.b_error,
+        tab.mid_weights,
         first,
         euler.entries(),
     )
@@ -499,11 +496,14 @@ def _rigid_body_step(
 
 
 class _SoATableau(NamedTuple):
-    """A Lie solver's tableau for :func:`_rigid_body_step`: as Python floats, and whether the step
-    carries its last stage (first-same-as-last, with the dense output built from the slopes)."""
+    """A Lie solver's tableau for :func:`_rigid_body_step`: as Python floats, whether the step
+    carries its last stage (first-same-as-last, with the dense output built from the slopes), and
+    the error and midpoint weights (None: none)."""
 
     soa: struct_of_arrays.Tableau
     fsal_state: bool
+    b_error: list[float] | None = None
+    mid_weights: list[float] | None = None
 
 
 def _body_rate_form(field: Callable, direction, args, flags: tuple[bool, ...], t, y) -> list:
@@ -660,20 +660,13 @@ class AbstractRKMK(AbstractLieSolver):
         if order is None:
             raise TypeError(f"{type(self).__name__}.order must return the method's order, got None")
         if isinstance(tangent, _ModelRates) and tangent.rigid_body is not None:
-            adaptive = isinstance(self, diffrax.AbstractAdaptiveSolver)
-            return _rigid_body_step(
-                _SoATableau(struct_of_arrays.Tableau.of(tab, order), bool(tab.fsal)),
-                np.asarray(tab.b_error).tolist() if adaptive else None,
+            soa_tab = _SoATableau(
+                struct_of_arrays.Tableau.of(tab, order),
+                bool(tab.fsal),
+                np.asarray(tab.b_error).tolist() if isinstance(self, diffrax.AbstractAdaptiveSolver) else None,
                 None if self.mid_weights is None else np.asarray(self.mid_weights).tolist(),
-                tangent.rigid_body,
-                tangent,
-                t0,
-                t1,
-                h,
-                y0,
-                solver_state,
-                made_jump,
             )
+            return _rigid_body_step(soa_tab, tangent.rigid_body, tangent, t0, t1, h, y0, solver_state, made_jump)
         stages = tab.num_stages
         a = np.zeros((stages, stages))
         for i, row in enumerate(tab.a_lower):
@@ -799,7 +792,7 @@ class LieEuler(AbstractLieSolver):
     def lie_step(self, tangent, t0, t1, h, y0, flags, solver_state, made_jump):
         if isinstance(tangent, _ModelRates) and tangent.rigid_body is not None:
             tab = _SoATableau(struct_of_arrays.LIE_EULER, False)
-            return _rigid_body_step(tab, None, None, tangent.rigid_body, tangent, t0, t1, h, y0, None, made_jump)
+            return _rigid_body_step(tab, tangent.rigid_body, tangent, t0, t1, h, y0, None, made_jump)
         # written out: diffrax's ButcherTableau needs two stages or more
         lay = _LAYOUTS[self.layout]
         leaves, tree = jax.tree.flatten(y0)
