@@ -344,6 +344,33 @@ def test_backsolve_adjoint_gradients():
     _check_gradients_against_central_differences(lie_backward, "BacksolveAdjoint with RKMK45 backward")
 
 
+def test_the_adaptive_path_s_default_adjoint_keeps_64_checkpoints_per_body(monkeypatch):
+    """``simulate``'s adaptive path passes ``diffeqsolve`` a ``RecursiveCheckpointAdjoint`` with 64
+    checkpoints (``_CHECKPOINTS``: diffrax's own default, 446 for ``max_steps=100_000``, made the
+    gradient of a batch 1.3-2x slower and twice as large in memory, each body of the ``vmap``
+    holding its own), and a given adjoint is passed as it is. Gradients that recompute steps from
+    checkpoints are checked against finite differences in ``test_lie_solvers.py``
+    (``test_gradients_through_an_adaptive_solve_recomputing_from_checkpoints_...``)."""
+    seen = []
+
+    class Seen(Exception):
+        pass
+
+    def spy(*args, **kwargs):  # records the adjoint and stops: nothing is solved or compiled
+        seen.append(kwargs["adjoint"])
+        raise Seen
+
+    monkeypatch.setattr(diffrax, "diffeqsolve", spy)
+    q0, w0, inertia = jq.identity((2,), DTYPE), jnp.ones((2, 3), DTYPE), jnp.diag(jnp.asarray(I_DIAG, DTYPE))
+    ts = jnp.asarray([0.0, 0.5], DTYPE)
+    for adjoint in (None, diffrax.RecursiveCheckpointAdjoint(checkpoints=5)):
+        with pytest.raises(Seen):
+            jq.simulate(q0, w0, inertia, ts, torque=_constant_torque, args=jnp.asarray(0.3, DTYPE), adjoint=adjoint)
+    default, given = seen
+    assert isinstance(default, diffrax.RecursiveCheckpointAdjoint) and default.checkpoints == 64
+    assert isinstance(given, diffrax.RecursiveCheckpointAdjoint) and given.checkpoints == 5
+
+
 def _spin_torque(t, q, w, args):
     return args * jnp.cross(w, jnp.asarray([0.0, 0.0, 1.0], w.dtype)) + 0.1 * jnp.sin(t)
 
