@@ -17,7 +17,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 import jaxquat as jq
-from helpers import DTYPE, X64, assert_close, jaxpr_equations
+from helpers import DTYPE, X64, assert_close, central_difference_jacobian, jaxpr_equations
 
 MASS, GRAVITY, DRAG = 1.2, 9.81, 0.3
 INERTIA = np.array([0.02, 0.03, 0.05])
@@ -439,37 +439,100 @@ def test_a_rigid_body_model_is_stepped_in_components_as_the_generic_step_would()
         assert_close(b, a, tol=1e-13 if X64 else 1e-5)  # measured 4.4e-16 and 6.0e-7
 
 
-def _solve_loss(layout, w0, inertia, gains):
+def test_the_component_step_takes_args_that_are_not_arrays():
+    """The component step is a jitted function of its arrays: ``args`` leaves that are not arrays
+    (a string, a Python float) reach the torque as they are, and the steps are the row layout's."""
+
+    def torque(t, q, w, a):
+        return -a["k"] * w * (2.0 if a["mode"] == "double" else 1.0)
+
+    y0, full, _, _ = _rigid_bodies()
+    ys = [
+        diffrax.diffeqsolve(
+            diffrax.ODETerm(jq.RigidBody(full, torque)),
+            jq.RKMK4(layout=layout),
+            0.0,
+            0.2,
+            0.05,
+            y0,
+            args=dict(k=0.5, mode="double"),
+        ).ys
+        for layout in ("rows", "components")
+    ]
+    for a, b in zip(*ys):
+        assert_close(b, a, tol=1e-13 if X64 else 1e-5)
+
+
+def _step_loss(layout, w0, inertia, gains):
+    """One ``RKMK45`` step on a ``RigidBody`` from ``init``'s carried first stage, a loss reading
+    the state, the error estimate and the dense output."""
     y0, _, _, _ = _rigid_bodies()
-    sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(jq.RigidBody(inertia, _pd_torque)),
-        jq.RKMK45(layout=layout),
-        0.0,
-        1.0,
-        0.05,
-        (y0[0], w0),
-        args=gains,
-        stepsize_controller=diffrax.PIDController(rtol=1e-6, atol=1e-6),
-        saveat=diffrax.SaveAt(t1=True),
-        max_steps=256,
-    )
-    return jnp.sum(sol.ys[0][-1] * jnp.arange(4.0, dtype=DTYPE)[None]) + jnp.sum(sol.ys[1][-1] ** 2)
+    term = diffrax.ODETerm(jq.RigidBody(inertia, _pd_torque))
+    solver = jq.RKMK45(layout=layout)
+    state = solver.init(term, 0.0, 0.05, (y0[0], w0), gains)
+    y, err, dense, _, _ = solver.step(term, 0.0, 0.05, (y0[0], w0), gains, state, False)
+    mid = solver.interpolation_cls(t0=0.0, t1=0.05, **dense).evaluate(0.02)
+    weights = jnp.arange(4.0, dtype=DTYPE)[None]
+    return jnp.sum(y[0] * weights) + jnp.sum(y[1] ** 2) + jnp.sum(err[1] * y[1]) + jnp.sum(mid[0] ** 3)
 
 
-_solve_grads = jax.jit(jax.grad(_solve_loss, argnums=(1, 2, 3)), static_argnums=0)
+_step_grads = jax.jit(jax.grad(_step_loss, argnums=(1, 2, 3)), static_argnums=0)
 
 
 def test_the_component_step_s_gradients_are_the_generic_step_s():
-    """Reverse mode through ``diffeqsolve`` with an adaptive ``RKMK45`` on a ``RigidBody``: the
-    gradients with respect to the initial rates, a full inertia tensor and the torque's gains in
-    the component step (its inputs, the inertia's entries and the step through one backward
-    loop) equal the generic step's (``layout="rows"``) to rounding, and are finite."""
+    """Reverse mode through an ``RKMK45`` step on a ``RigidBody`` (state, error estimate, dense
+    output, the carried first stage): the gradients with respect to the initial rates, a full
+    inertia tensor and the torque's gains in the component step (its inputs, the inertia's
+    entries and the step through one backward loop) equal the generic step's
+    (``layout="rows"``) to rounding, and are finite. (Through a whole adaptive solve: the next
+    test.)"""
     y0, full, _, gains = _rigid_bodies()
-    rows = _solve_grads("rows", y0[1], full, gains)
-    parts = _solve_grads("components", y0[1], full, gains)
+    rows = _step_grads("rows", y0[1], full, gains)
+    parts = _step_grads("components", y0[1], full, gains)
     for a, b in zip(rows, parts):
         assert np.all(np.isfinite(np.asarray(b)))
-        assert_close(b, a, tol=1e-11 if X64 else 1e-4)  # measured 1.2e-14 and 9.5e-7 (entries up to 8.3)
+        assert_close(b, a, tol=1e-11 if X64 else 1e-4)  # measured 4.4e-16 and 4.8e-7 (entries up to 4.9)
+
+
+@pytest.mark.skipif(not X64, reason="finite differences need float64")
+def test_gradients_through_an_adaptive_solve_recomputing_from_checkpoints_match_finite_differences():
+    """``jit(grad)`` through ``diffeqsolve`` with ``RKMK45`` (the component step) on a ``RigidBody``
+    over 49 steps with 8 checkpoints, so that the backward pass recomputes steps from them (as
+    ``simulate``'s default adjoint, 64 checkpoints per body, does past 64 steps): the gradients in
+    the initial rates, the full inertia tensor and the gains are central differences' (measured
+    8.1e-10, 1.5e-9 and 4.4e-10 relative to the largest entry; the bound 1e-6)."""
+    y0, full, _, gains = _rigid_bodies()
+
+    def loss(w0, inertia, k):
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(jq.RigidBody(inertia, _pd_torque)),
+            jq.RKMK45(),
+            0.0,
+            3.0,
+            0.05,
+            (y0[0], w0),
+            args=k,
+            stepsize_controller=diffrax.PIDController(rtol=1e-10, atol=1e-10),
+            saveat=diffrax.SaveAt(t1=True),
+            adjoint=diffrax.RecursiveCheckpointAdjoint(checkpoints=8),
+            max_steps=256,
+        )
+        value = jnp.sum(sol.ys[0][-1] * jnp.arange(4.0, dtype=DTYPE)[None]) + jnp.sum(sol.ys[1][-1] ** 2)
+        return value, sol.stats["num_steps"]
+
+    # one compiled program for the gradient, the step count and every finite-difference value
+    value_and_grad = jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2), has_aux=True))
+    args = (y0[1], full, gains)
+    (_, steps), grads = value_and_grad(*args)
+    assert int(steps) > 8, steps
+    for i, g in enumerate(grads):
+
+        def partial(x, i=i):
+            return value_and_grad(*args[:i], x, *args[i + 1 :])[0][0]
+
+        fd = central_difference_jacobian(partial, np.asarray(args[i]))
+        scale = max(1e-3, float(np.abs(fd).max()))
+        assert_close(np.asarray(g) / scale, fd / scale, tol=1e-6, what=f"gradient {i}")
 
 
 @pytest.mark.skipif(not X64, reason="a lowering test: its verdict does not depend on the dtype")
