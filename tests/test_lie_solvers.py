@@ -555,6 +555,24 @@ def test_the_component_step_s_input_cotangents_come_out_of_one_loop():
     assert re.search(r"%\w+:13 = stablehlo\.reduce\(", text)
 
 
+@pytest.mark.skipif(not X64, reason="a lowering test: its verdict does not depend on the dtype")
+def test_a_step_without_dense_output_computes_only_the_state_in_its_last_loop():
+    """``RKMK4`` (no error estimate, no carried stage) on a ``RigidBody`` in ``diffeqsolve``: the
+    component step's last loop writes the state's 4 + 3 components and nothing more. Writing the
+    increments, the dense output's slopes and the last stage too (31 arrays), a fixed-step
+    ``diffeqsolve`` of 1000 bodies took 52 ms against 7.3 ms once the step was a jitted function
+    of its own (XLA keeping the unused outputs)."""
+    y0, full, _, gains = _rigid_bodies()
+    term = diffrax.ODETerm(jq.RigidBody(full, _pd_torque))
+
+    def solve(y):
+        return diffrax.diffeqsolve(term, jq.RKMK4(), 0.0, 0.2, 0.05, y, args=gains).ys
+
+    text = jax.jit(solve).lower(y0).as_text()
+    sizes = [int(n) for n in re.findall(r"%\w+:(\d+) = stablehlo\.reduce\(", text)]
+    assert max(sizes) == 7, sizes
+
+
 class _Spy:
     """The quadrotor's field, counting the calls of its body-rate form."""
 

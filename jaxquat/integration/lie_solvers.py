@@ -470,7 +470,8 @@ def _rigid_body_step(tab: _SoATableau, parts: _RigidBodyParts, tangent, t0, t1, 
     # several times over (linearize, vjp, vmap); inlined, the component step's 2442 equations
     # (937 in rows) were transformed anew each time. Time to the first gradient of 1000 bodies
     # through simulate with the PD torque (benchmarks/simulation.py; adaptive RKMK45, float32):
-    # 19.5 s inlined (11.4 s tracing, 8.0 s XLA), 15.5 s so (6.9 s, 8.5 s); the row layout 11.9 s.
+    # 19.5 s inlined (11.4 s tracing, 8.0 s XLA), 14.1-14.4 s so (6.4-6.5 s, 7.5-7.9 s); the row layout
+    # 11.9 s (5.0 s, 6.7 s).
     dynamic, static = eqx.partition(parts.args, eqx.is_array)
 
     def step(direction, t0, dt, h, q, w, dynamic, first, entries):
@@ -492,6 +493,7 @@ def _rigid_body_step(tab: _SoATableau, parts: _RigidBodyParts, tangent, t0, t1, 
             tab.mid_weights,
             first,
             entries,
+            tab.fsal_state,
         )
 
     out = jax.jit(step)(parts.direction, t0, t1 - t0, h, soa.split(q), soa.split(w), dynamic, first, euler.entries())
@@ -503,6 +505,8 @@ def _rigid_body_step(tab: _SoATableau, parts: _RigidBodyParts, tangent, t0, t1, 
     y_error = None if out.error is None else rows(out.error)
     if not tab.fsal_state:
         return y1, y_error, None, None
+    assert out.theta is not None and out.dz is not None and out.start is not None and out.end is not None
+    assert out.last is not None  # dense=tab.fsal_state
     dense = dict(y0=y0, y1=y1, incr=rows((out.theta, out.dz)), d0=rows(out.start), d1=rows(out.end))
     dense["mid"] = None if out.mid is None else rows(out.mid)
     return y1, y_error, dense, [soa.stack(out.last[0]), soa.stack(out.last[1])]
