@@ -29,15 +29,15 @@ from ..mechanics.torques import as_body_torque
 __all__ = ["Simulation", "simulate"]
 
 # The default adjoint's checkpoints per body. Diffrax's own default is O(sqrt(2 max_steps)), 446
-# for max_steps=100_000; each body of the adaptive path's vmap holds its own, and their cost is per solve, whatever
-# the steps taken: the gradient of 1000 bodies under the PD torque for 10 s (55 steps at most in
-# float32, 173 in float64; one core of a 2-core EPYC) took 118 ms in float32 and 294 ms in float64
-# with 446, 57 ms and 232 ms with 64 (16: 58 / 280, 32: 57 / 222, 128: 75 / 267, 256: 106 / 295),
-# at 10^4 bodies 1657 ms (1.71 GB peak) and 5171 ms (2.21 GB) with 446, 1073 ms (1.09 GB) and
-# 4667 ms (1.18 GB) with 64. Up to (64 + 1)(64 + 2)/2 = 2145 steps equinox's online checkpointing
-# recomputes optimally (its bound, after Stumm and Walther): 200 s of the PD law plus a sinusoid
-# at 100 bodies, 1754 steps, took 367 ms with 446, 375 ms with 64 and 611 ms with 32. Longer
-# solves recompute more than with 446.
+# for max_steps=100_000, and each body of the adaptive path's vmap holds its own: their cost
+# comes per solve, whatever the number of steps taken. The gradient of 1000 bodies under the PD
+# torque for 10 s (55 steps at most in float32, 173 in float64; one core of a 2-core EPYC) took
+# 118 ms in float32 and 294 ms in float64 with 446, 57 ms and 232 ms with 64 (16: 58 / 280,
+# 32: 57 / 222, 128: 75 / 267, 256: 106 / 295); at 10^4 bodies 1657 ms (1.71 GB peak) and
+# 5171 ms (2.21 GB) with 446, 1073 ms (1.09 GB) and 4667 ms (1.18 GB) with 64. Up to
+# (64 + 1)(64 + 2)/2 = 2145 steps equinox's online checkpointing recomputes optimally (its bound,
+# after Stumm and Walther): 200 s of the PD law plus a sinusoid at 100 bodies, 1754 steps, took
+# 367 ms with 446, 375 ms with 64 and 611 ms with 32. Longer solves recompute more than with 446.
 _CHECKPOINTS = 64
 
 
@@ -89,8 +89,8 @@ def simulate(
     is diagonalised with :func:`jaxquat.principal_axes` and the results are
     rotated back (its derivative needs distinct principal moments). ``adjoint`` defaults to diffrax's
     ``RecursiveCheckpointAdjoint`` with 64 checkpoints per body (diffrax's own default for
-    ``max_steps=100_000``, 446, made reverse mode through a batch 1.3-2x slower and twice as large
-    in memory; see ``_CHECKPOINTS``); ``progress=True`` shows a tqdm bar.
+    ``max_steps=100_000``, 446, made reverse mode through a batch 1.3-2x slower, with up to 1.9x
+    the memory; see ``_CHECKPOINTS``); ``progress=True`` shows a tqdm bar.
 
     Torque-free with the default solver, no ``dt0``, ``adjoint`` or ``progress``: no
     ``diffeqsolve`` runs; every saved state is the closed-form flow
