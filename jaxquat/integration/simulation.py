@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import math
 from collections.abc import Callable
@@ -82,7 +83,9 @@ def simulate(
     next (``diffrax.StepTo(ts)``), error at rounding level at any ``t``. With a
     torque it defaults to :class:`jaxquat.RKMK45` with a PID controller
     (``rtol``, ``atol``) made to step exactly onto every ``ts`` (so saved
-    states are step ends, not interpolants). A fixed-step solver
+    states are step ends, not interpolants: a step that ends within rounding of a
+    saved time saves its end, and a Lie solver computes no dense output,
+    ``saves_at_step_ends``). A fixed-step solver
     (``LieEuler``, ``RKMK4``, the splittings, or any diffrax solver without an
     error estimate) needs ``dt0``. The splitting solvers (``RigidBodySplit*``,
     ``EulerPoinsotSplit*``) work in principal axes: a full (or traced) tensor
@@ -162,6 +165,13 @@ def simulate(
     if solver is None:
         solver = EulerPoinsotSplit() if torque is None else RKMK45()
     adaptive = _has_error_estimate(solver)
+    if adaptive and isinstance(solver, AbstractLieSolver):
+        # every saved time is a step end (ClipStepSizeController(step_ts=ts), below): the saves are
+        # the steps' own ends, and diffrax traces no dense output (_StepEndInterpolation). 1000
+        # PD-controlled bodies over 10 s, float32, one core: forward 9.2 -> 6.3 ms, gradient 54.8 ->
+        # 41.6 ms (float64: 36 -> 23 ms, 228 -> 166 ms); time to the first gradient 14.1-14.4 ->
+        # 11.4 s (trace 6.4 -> 5.3 s, XLA 7.5 -> 6.0 s).
+        solver = dataclasses.replace(solver, saves_at_step_ends=True)
     # Torque-free, the exact flow needs no step control: step straight from one saved time to the next.
     exact = getattr(solver, "exact_torque_free", False) and torque is None and dt0 is None
     if not (adaptive or exact) and dt0 is None:

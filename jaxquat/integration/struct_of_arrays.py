@@ -407,8 +407,8 @@ class LieStep(NamedTuple):
     estimate (``q1 (0, e/2)`` and ``e_z``; None without error weights), the dense output's end
     slopes ``h (k_1, l_1)`` and ``h (dexp^-1_theta(w_s), l_s)``, its midpoint increments (None
     without midpoint weights), and the last stage's ``(w_s, l_s)`` (the next step's first stage
-    for a first-same-as-last tableau). Without ``dense``, the increments, slopes and last stage
-    are None."""
+    for a first-same-as-last tableau). Without ``dense``, the increments and slopes are None;
+    without ``carry``, the last stage."""
 
     q1: Comps
     z1: Comps
@@ -436,16 +436,17 @@ def lie_step(
     first: tuple[Comps, Comps] | None = None,
     params: Comps = (),
     dense: bool = True,
+    carry: bool = True,
 ) -> LieStep:
     """One RKMK step of ``tab`` as :func:`rkmk_step` computes it (each stage one loop on CPU, the
     cotangents of ``(q, z)`` one loop), with everything a diffrax solver returns besides the state
     (:class:`LieStep`) computed in the result's loop: what the Lie solvers of
     :mod:`jaxquat.integration.lie_solvers` run on a rigid-body model (``euler_equations``).
-    ``dense=False`` (a solver that carries no stage and has no dense output of its own, ``RKMK4``,
-    ``LieEuler``): the loop writes the state (and the error estimate) only. Writing the rest too,
-    the 31 arrays of ``RKMK4``'s last loop instead of 7, ``diffeqsolve`` of 1000 bodies took 52
-    ms against 7.3 ms once the step was a jitted function of its own (``lie_solvers``), XLA
-    keeping the unused outputs."""
+    ``dense=False`` (no dense output: ``RKMK4``, ``LieEuler``, a solver saving at step ends) leaves
+    out the increments and the slopes, ``carry=False`` (no first-same-as-last stage) the last
+    stage. Writing them all (the 31 arrays of ``RKMK4``'s last loop instead of 7), ``diffeqsolve``
+    of 1000 bodies took 52 ms against 7.3 ms once the step was a jitted function of its own
+    (``lie_solvers``): XLA kept the unused outputs."""
     q, z, h, params, first = _inputs(q, z, h, params, first)
     ks, ls, w_last = rkmk_stages(tab, field, t0, dt, h, q, z, args, field_reads_q, True, first, params)
     q1, z1, theta, dz = rkmk_combine(tab.b, h, q, z, ks, ls, True)
@@ -459,9 +460,10 @@ def lie_step(
         pairs["end"] = (tuple(h * x for x in dexpinv(theta, w_last, tab.order)), tuple(h * x for x in ls[-1]))
         if mid_weights is not None:
             pairs["mid"] = (_weighted(list(zip(mid_weights, ks)), h), _weighted(list(zip(mid_weights, ls)), h))
-        pairs["last"] = (w_last, ls[-1])
     else:
         del pairs["incr"]
+    if carry:
+        pairs["last"] = (w_last, ls[-1])
     looped = iter(_grouped(_fusion.one_loop, [g for pair in pairs.values() for g in pair]))
     got = {name: (next(looped), next(looped)) for name in pairs}
     incr = got.get("incr", (None, None))
