@@ -527,7 +527,7 @@ def _rigid_body_step(tab: _SoATableau, parts: _RigidBodyParts, tangent, t0, t1, 
             tab.mid_weights,
             first,
             entries,
-            tab.dense and tab.fsal_state,
+            tab.dense,
             tab.fsal_state,
         )
 
@@ -552,14 +552,14 @@ def _rigid_body_step(tab: _SoATableau, parts: _RigidBodyParts, tangent, t0, t1, 
 
 class _SoATableau(NamedTuple):
     """A Lie solver's tableau for :func:`_rigid_body_step`: as Python floats, whether the step
-    carries its last stage (first-same-as-last, with the dense output built from the slopes), and
-    the error and midpoint weights (None: none)."""
+    carries its last stage (first-same-as-last), the error and midpoint weights (None: none), and
+    whether it computes the dense output's slopes."""
 
     soa: struct_of_arrays.Tableau
     fsal_state: bool
     b_error: list[float] | None = None
     mid_weights: list[float] | None = None
-    dense: bool = True  # with fsal_state, the dense output's slopes (False: saves at step ends only)
+    dense: bool = False  # a first-same-as-last tableau that does not save at step ends
 
 
 def _body_rate_form(field: Callable, direction, args, flags: tuple[bool, ...], t, y) -> list:
