@@ -450,7 +450,9 @@ def lie_step(
     q, z, h, params, first = _inputs(q, z, h, params, first)
     ks, ls, w_last = rkmk_stages(tab, field, t0, dt, h, q, z, args, field_reads_q, True, first, params)
     q1, z1, theta, dz = rkmk_combine(tab.b, h, q, z, ks, ls, True)
-    pairs: dict[str, tuple[Comps, Comps]] = {"state": (q1, z1), "incr": (theta, dz)}
+    pairs: dict[str, tuple[Comps, Comps]] = {"state": (q1, z1)}
+    if dense:
+        pairs["incr"] = (theta, dz)
     if b_error is not None:
         e, e_z = _weighted(list(zip(b_error, ks)), h), _weighted(list(zip(b_error, ls)), h)
         q_error = _quaternion.multiply_components(q1, (None, *(0.5 * x for x in e)))  # no None: q1 has none
@@ -460,8 +462,6 @@ def lie_step(
         pairs["end"] = (tuple(h * x for x in dexpinv(theta, w_last, tab.order)), tuple(h * x for x in ls[-1]))
         if mid_weights is not None:
             pairs["mid"] = (_weighted(list(zip(mid_weights, ks)), h), _weighted(list(zip(mid_weights, ls)), h))
-    else:
-        del pairs["incr"]
     if carry:
         pairs["last"] = (w_last, ls[-1])
     looped = iter(_grouped(_fusion.one_loop, [g for pair in pairs.values() for g in pair]))
