@@ -417,6 +417,29 @@ def test_scan_path_matches_diffeqsolve(solver):
     assert_close(shared.q, broadcast.q, tol=1e-13 if X64 else 1e-6, what="shared inertia")
 
 
+@pytest.mark.parametrize("solver", [jq.RKMK4(), jq.LieEuler()], ids=lambda s: type(s).__name__)
+def test_a_time_dependent_torque_sees_a_scalar_time_on_the_scan_path(solver):
+    """The torque's ``t`` is a scalar at every stage of the scan path, as on ``diffeqsolve``'s. The
+    struct-of-arrays step handed it a time per body (the step size broadcast to the batch, session
+    44 to 46): a law reading ``t`` failed for 5 bodies and, for 3, broadcast the times against its
+    3 components without an error."""
+    seen = set()
+
+    def torque(t, q, w, k):
+        seen.add(jnp.shape(t))
+        return k * jnp.sin(3.0 * t) * jnp.asarray([1.0, -0.5, 0.25], w.dtype)
+
+    q0 = jq.identity((5,), DTYPE)
+    w0 = jnp.broadcast_to(jnp.asarray(W0, DTYPE), (5, 3))
+    inertia, ts = jnp.diag(jnp.asarray(I_DIAG, DTYPE)), np.linspace(0.0, 1.0, 3)
+    fast, slow = (
+        jq.simulate(q0, w0, inertia, ts, torque=torque, args=0.7, solver=solver, dt0=0.05, **kw)
+        for kw in ({}, dict(adjoint=diffrax.RecursiveCheckpointAdjoint()))
+    )
+    assert seen == {()}
+    assert_close(fast.omega, slow.omega, tol=1e-11 if X64 else 2e-5, what="omega")
+
+
 def test_the_lie_solvers_scan_path_is_the_struct_of_arrays_step(monkeypatch):
     """simulate's scan path runs LieEuler and RKMK4 on the struct-of-arrays step (whose reverse
     pass is element-wise) and the splittings on their own steps: a fresh shape (so the compiled

@@ -312,9 +312,10 @@ def rkmk_step(
     one ``jvp`` 69.3 / 149 ms -> 15.5 / 30.5 ms. Tried: without the loops per stage (the whole
     step in one loop, forward 6.6 ms, gradient 28.7 ms, ``jvp`` 19.6 ms, float32); the stages'
     cotangents in one loop each as well (gradient 39.3 / 97.8 ms)."""
+    dt = h  # the stage times' step: a scalar, where _inputs broadcasts h to the batch
     if one_loop:
         q, z, h, params, _ = _inputs(q, z, h, params)
-    ks, ls, _ = rkmk_stages(tab, field, t0, h, h, q, z, args, field_reads_q, one_loop, params=params)
+    ks, ls, _ = rkmk_stages(tab, field, t0, dt, h, q, z, args, field_reads_q, one_loop, params=params)
     q1, z1, _, _ = rkmk_combine(tab.b, h, q, z, ks, ls, one_loop)
     return _paired(_fusion.one_loop, q1, z1) if one_loop else (q1, z1)
 
