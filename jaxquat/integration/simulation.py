@@ -51,6 +51,15 @@ _CHECKPOINTS = 64
 # 350 -> 700 ms; 20 000 bodies: 374 ms).
 _CHUNK_BYTES = 80_000
 
+# The adaptive path's chunks on CPU: at most this many bodies, whose vmapped solves run one chunk
+# after another. 10^4 bodies under the PD torque of benchmarks/simulation.py for 10 s, median of
+# 3, forward and gradient, whole -> in chunks of 1000: two cores, float32, 67-69 -> 62-97 ms and
+# 529-583 -> 304-310 ms; one core, float64, 309 -> 231 ms and 3311 -> 1590 ms (chunks of 2500:
+# 378-383 ms, 280 and 2014 ms). At 1000 bodies smaller chunks gained nothing (one core, float32:
+# 36.0 ms whole, 37.4-38.4 ms in chunks of 100-500). Not rematerialised: diffrax's checkpoints
+# are small, and each chunk recomputed cost 12 % more (one core, float32: 462 against 412 ms).
+_ADAPTIVE_CHUNK = 1000
+
 
 class Simulation(NamedTuple):
     """Result of :func:`simulate`: attitudes ``q`` ``(*batch, len(ts), 4)``, body angular
@@ -207,7 +216,8 @@ def simulate(
     substeps = None if (adjoint is not None or progress) else _scan_substeps(solver, ts_host, dt0, max_steps)
     adjoint = diffrax.RecursiveCheckpointAdjoint(checkpoints=_CHECKPOINTS) if adjoint is None else adjoint
     diagonal = substeps is not None and _is_concrete_diagonal(inertia)
-    chunk = _CHUNK_BYTES // q0.dtype.itemsize if jax.default_backend() == "cpu" else q0.size  # a GPU: whole
+    on_cpu = jax.default_backend() == "cpu"  # a GPU takes the batch whole
+    chunks = (_CHUNK_BYTES // q0.dtype.itemsize, _ADAPTIVE_CHUNK) if on_cpu else (q0.size, q0.size)
     config = _Config(
         solver,
         torque,
@@ -221,7 +231,7 @@ def simulate(
         max_steps,
         adjoint,
         progress,
-        chunk,
+        chunks,
     )
     try:
         return _solve(config, q0, omega0, inertia, shared_inertia, ts, args, dt0)
@@ -249,7 +259,7 @@ class _Config(NamedTuple):
     max_steps: int
     adjoint: Any
     progress: bool
-    chunk: int  # the scan path's most bodies per chunk (_in_chunks)
+    chunks: tuple[int, int]  # the most bodies per chunk (_in_chunks): the scan path's, the adaptive path's
 
 
 @eqx.filter_jit
@@ -332,7 +342,7 @@ def _solve(cfg: _Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> 
     n = len(ts)
     flat = [x.reshape((-1,) + x.shape[len(batch) :]) for x in (q0, omega0, inertia)]
     if adaptive:  # each body its own step sizes
-        qs, ws, sol = jax.vmap(lambda q, w, i: solve(q, w, i, torque))(*flat)
+        qs, ws, sol = _in_chunks(jax.vmap(lambda q, w, i: solve(q, w, i, torque)), cfg.chunks[1], *flat, remat=False)
     else:  # fixed steps: one solve of the stacked batch (diffrax's per-step work is shared)
         per_body = None if torque is None else jax.vmap(torque, in_axes=(None, 0, 0, None))
         if shared_inertia is not None and per_body_field:  # one (3, 3) tensor, not carried per body
@@ -341,23 +351,27 @@ def _solve(cfg: _Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> 
             qs, ws, sol = solve(flat[0], flat[1], flat[2], per_body)
             qs, ws = jnp.swapaxes(qs, 0, 1), jnp.swapaxes(ws, 0, 1)
         else:  # the scan drivers
-            qs, ws = _in_chunks(lambda q, w, i: solve(q, w, i, per_body)[:2], cfg.chunk, *flat)
+
+            def batch_first(q, w, i):
+                qs, ws, _ = solve(q, w, i, per_body)
+                return jnp.swapaxes(qs, 0, 1), jnp.swapaxes(ws, 0, 1)
+
+            qs, ws = _in_chunks(batch_first, cfg.chunks[0], *flat, remat=True)
             sol = None
     return Simulation(qs.reshape(batch + (n, 4)), ws.reshape(batch + (n, 3)), sol)
 
 
-def _in_chunks(solve: Callable, size: int, q: Array, w: Array, inertia: Array) -> tuple[Array, Array]:
+def _in_chunks(solve: Callable, size: int, q: Array, w: Array, inertia: Array, remat: bool) -> Any:
     """``solve(q, w, inertia)`` of a stacked batch (``q`` ``(n, 4)``, ``w`` ``(n, 3)``, ``inertia``
-    ``(3, 3)`` shared or ``(n, 3, 3)``; time first in its results) with the time axis second,
-    solved in chunks of at most ``size`` bodies when ``n`` is larger: one
-    after another (``lax.map``), each rematerialised in reverse mode (``jax.checkpoint``), so
-    that a gradient stores the states of one chunk's steps at a time, not of the whole batch's,
-    and the backward step's arrays stay in cache. The batch is padded to whole chunks with copies
-    of its first body, whose results are dropped."""
+    ``(3, 3)`` shared or ``(n, 3, 3)``; a pytree of results with the batch axis first), solved
+    in chunks of at most ``size`` bodies when ``n`` is larger, one after another (``lax.map``),
+    so that the arrays of a step stay in cache. ``remat``: each chunk rematerialised whole in
+    reverse mode (``jax.checkpoint``), so that a gradient stores one chunk's states at a time,
+    not the whole batch's. The batch is padded to whole chunks with copies of its first body,
+    whose results are dropped."""
     n = q.shape[0]
     if n <= size:
-        qs, ws = solve(q, w, inertia)
-        return jnp.swapaxes(qs, 0, 1), jnp.swapaxes(ws, 0, 1)
+        return solve(q, w, inertia)
     count = -(-n // size)
     size = -(-n // count)
     per_body = inertia.ndim == 3
@@ -366,13 +380,12 @@ def _in_chunks(solve: Callable, size: int, q: Array, w: Array, inertia: Array) -
     parts = [jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad,) + x.shape[1:])]) if pad else x for x in parts]
     parts = [x.reshape((count, size) + x.shape[1:]) for x in parts]
 
-    @functools.partial(jax.checkpoint, prevent_cse=False)  # inside lax.map's scan, CSE cannot cross steps
     def one(chunk):
-        qs, ws = solve(chunk[0], chunk[1], chunk[2] if per_body else inertia)
-        return jnp.swapaxes(qs, 0, 1), jnp.swapaxes(ws, 0, 1)
+        return solve(chunk[0], chunk[1], chunk[2] if per_body else inertia)
 
-    qs, ws = jax.lax.map(one, parts)
-    return qs.reshape((count * size,) + qs.shape[2:])[:n], ws.reshape((count * size,) + ws.shape[2:])[:n]
+    if remat:
+        one = jax.checkpoint(one, prevent_cse=False)  # inside lax.map's scan, CSE cannot cross chunks
+    return jax.tree.map(lambda x: x.reshape((count * size,) + x.shape[2:])[:n], jax.lax.map(one, parts))
 
 
 class _StackOfCopiesAsBroadcast:
