@@ -619,6 +619,30 @@ def test_an_adaptive_batch_larger_than_a_chunk_is_solved_chunk_by_chunk_with_the
         assert_close(a, b, tol=1e-13 if X64 else 1e-6, what=what)
 
 
+def test_a_solve_with_a_progress_bar_takes_the_batch_whole(monkeypatch):
+    """With ``progress=True`` the batch is not cut into chunks (one bar for the solve, not one a
+    chunk); without it the adaptive path's chunks hold ``_ADAPTIVE_CHUNK`` bodies. A spy on
+    ``_in_chunks`` records the chunk size and stops: nothing is solved or compiled."""
+    from jaxquat.integration import simulation
+
+    class Seen(Exception):
+        pass
+
+    sizes = []
+
+    def spy(solve, size, *args, **kwargs):
+        sizes.append(size)
+        raise Seen
+
+    monkeypatch.setattr(simulation, "_in_chunks", spy)
+    monkeypatch.setattr(simulation, "_ADAPTIVE_CHUNK", 2)
+    q0, w0, inertia = jq.identity((5,), DTYPE), jnp.ones((5, 3), DTYPE), jnp.diag(jnp.asarray(I_DIAG, DTYPE))
+    for progress in (False, True):
+        with pytest.raises(Seen):
+            jq.simulate(q0, w0, inertia, np.linspace(0.0, 1.0, 3), torque=_spin_torque, args=0.3, progress=progress)
+    assert sizes[0] == 2 and sizes[1] >= 5, sizes
+
+
 # A learned torque (an MLP with its weights in ``args``) and an element-wise PD law (its gains in
 # ``args``) under XLA's default flags, in float64: the suite's own processes compile with the
 # legacy emitters (tests/conftest.py), which hid the defects this checks. The scan path's

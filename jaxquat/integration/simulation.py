@@ -52,12 +52,13 @@ _CHECKPOINTS = 64
 _CHUNK_BYTES = 80_000
 
 # The adaptive path's chunks on CPU: at most this many bodies, whose vmapped solves run one chunk
-# after another. 10^4 bodies under the PD torque of benchmarks/simulation.py for 10 s, median of
-# 3, forward and gradient, whole -> in chunks of 1000: two cores, float32, 67-69 -> 62-97 ms and
-# 529-583 -> 304-310 ms; one core, float64, 309 -> 231 ms and 3311 -> 1590 ms (chunks of 2500:
-# 378-383 ms, 280 and 2014 ms). At 1000 bodies smaller chunks gained nothing (one core, float32:
-# 36.0 ms whole, 37.4-38.4 ms in chunks of 100-500). Not rematerialised: diffrax's checkpoints
-# are small, and each chunk recomputed cost 12 % more (one core, float32: 462 against 412 ms).
+# after another, so that a chunk's arrays stay in cache. 10^4 bodies under the PD torque of
+# benchmarks/simulation.py for 10 s, one core of this 2-core EPYC, median of 3, whole -> in
+# chunks: float32 forward 79.4 -> 53.5 ms, gradient 723 -> 376 ms; float64 297 -> 217 ms and
+# 3373 -> 1703 ms. On two cores (float32, chunks made outside simulate, two runs each) the
+# gradient 529-583 -> 304-310 ms, with chunks of 2500 378-383 ms. At 1000 bodies smaller chunks
+# gained nothing (one core, float32: 36.0 ms whole, 37.4-38.4 ms in chunks of 100-500). Not
+# rematerialised: diffrax's checkpoints are small, and recomputing each chunk cost 12 % more.
 _ADAPTIVE_CHUNK = 1000
 
 
@@ -93,9 +94,10 @@ def simulate(
     ``q0`` ``(..., 4)`` (unit), ``omega0`` ``(..., 3)`` body angular velocity,
     ``inertia`` ``(..., 3, 3)`` body tensor; their leading axes broadcast. A batch is
     solved as one stacked state with fixed steps or the exact flow, and with ``vmap``
-    (a step size per body) with an adaptive solver. ``torque``: ``fn(t, q, w, args)`` in
-    ``torque_frame``, written for one body (``q`` ``(4,)``, ``w`` ``(3,)``; it is vmapped
-    over a batch, ``args`` shared).
+    (a step size per body) with an adaptive solver, on CPU in chunks of at most 1000 bodies
+    one after another (10^4 PD-controlled bodies, one core: the gradient 1.9-2.0x faster).
+    ``torque``: ``fn(t, q, w, args)`` in ``torque_frame``, written for one body (``q`` ``(4,)``,
+    ``w`` ``(3,)``; it is vmapped over a batch, ``args`` shared).
 
     ``solver`` defaults to :class:`jaxquat.EulerPoinsotSplit` when there is no
     torque: the exact Euler-Poinsot flow, one step from each saved time to the
@@ -216,8 +218,9 @@ def simulate(
     substeps = None if (adjoint is not None or progress) else _scan_substeps(solver, ts_host, dt0, max_steps)
     adjoint = diffrax.RecursiveCheckpointAdjoint(checkpoints=_CHECKPOINTS) if adjoint is None else adjoint
     diagonal = substeps is not None and _is_concrete_diagonal(inertia)
-    on_cpu = jax.default_backend() == "cpu"  # a GPU takes the batch whole
-    chunks = (_CHUNK_BYTES // q0.dtype.itemsize, _ADAPTIVE_CHUNK) if on_cpu else (q0.size, q0.size)
+    # a GPU takes the batch whole, and so does a solve with a progress bar (one bar, not one a chunk)
+    in_chunks = jax.default_backend() == "cpu" and not progress
+    chunks = (_CHUNK_BYTES // q0.dtype.itemsize, _ADAPTIVE_CHUNK) if in_chunks else (q0.size, q0.size)
     config = _Config(
         solver,
         torque,
