@@ -18,8 +18,14 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 from jax import Array
+from jax.interpreters import ad, batching, mlir
 
-from . import _trig
+from . import _fusion, _trig
+
+try:  # jax >= 0.4.36; pyproject allows 0.4.30, where jax.core still held it
+    from jax.extend.core import Primitive
+except ImportError:  # pragma: no cover
+    from jax.core import Primitive  # pyright: ignore[reportAttributeAccessIssue]
 
 
 def scalars(*xs: Array) -> tuple[Array, ...]:
@@ -39,41 +45,71 @@ def components(x: Array) -> list[Array]:
     """The components ``x[..., i]`` of ``x`` as separate arrays (one ``jnp.split``), for kernels
     written on components and assembled by :func:`assemble`.
 
-    The tangent takes each component by a product with a column of the identity,
-    ``dx @ e_i``, so reverse mode gathers the components' cotangents back into ``(..., k)``
-    through products with ``e_i^T`` and a matrix product, not through the concatenation that
-    transposes a split (or the zero pads that transpose slices). XLA on CPU fuses that
-    concatenation with the expressions producing the cotangents into one loop over the
-    output's elements that branches on the component and re-evaluates every shared
+    A primitive of its own (``jaxquat_components``), for derivatives of two forms. Forward mode
+    takes the tangent's components by the same split. Reverse mode gathers the components'
+    cotangents back into ``(..., k)`` on CPU as the transpose of products with the columns of
+    the identity (``dx @ e_i``), not through the concatenation that transposes a split: XLA on
+    CPU fuses that concatenation with the expressions producing the cotangents into one loop over
+    the output's elements that branches on the component and re-evaluates every shared
     subexpression once per component. Measured at 10^6 (this 2-core CPU, the gradient of
-    ``sum(f(x) * W)``, minimum of 7 x 3 interleaved runs, float32 / float64): ``slerp``
-    26 / 58 ms against 147 / 186 ms with the split's own transpose, ``from_euler`` 1.1 / 2.7
-    against 3.0 / 6.7 ms, ``to_rotvec`` 18 / 33 against 8.6 / 62 ms; every component taken by
-    a product in the value too cost the value (``slerp`` 21 against 6 ms). Elsewhere (GPU, TPU)
-    a plain split, differentiated by JAX."""
-    return list(_trig.on_cpu(_components, split, x))
+    ``sum(f(x) * W)``, minimum of 7 x 3 interleaved runs, float32 / float64): ``slerp`` 26 / 58 ms
+    against 147 / 186 ms with the split's own transpose, ``from_euler`` 1.1 / 2.7 against 3.0 /
+    6.7 ms, ``to_rotvec`` 18 / 33 against 8.6 / 62 ms. Until session 46 the products were the
+    tangent itself (a ``custom_jvp``), which forward mode paid: one ``jvp`` at 10^6, float32, one
+    core, ``to_rotvec`` 29.3 -> 6.4 ms, ``from_rotvec`` 28.5 -> 4.2 ms with the split (and
+    :func:`assemble`'s tangents in one loop). Elsewhere (GPU, TPU) both are JAX's own: a split
+    and a concatenation."""
+    return list(_components_p.bind(x))
 
 
 def split(x: Array) -> tuple[Array, ...]:
     """The components ``x[..., i]`` of ``x`` by one ``jnp.split``, differentiated by JAX (reverse
-    mode transposes the split into a concatenation): :func:`components` off the CPU, and for
-    kernels whose own derivative rule is written out, where the products of :func:`components`
-    only cost forward mode. ``to_euler`` at 10^6 (this 2-core CPU, fresh processes): one ``jvp``
-    5.1 against 21 ms (float32) and 20-22 against 40-43 ms (float64), the value and the gradient
-    the same (7.2-7.8 ms, 18.8-20.0 ms float32)."""
+    mode transposes the split into a concatenation): for kernels whose own derivative rule is
+    written out, where the products of :func:`components` would only cost forward mode.
+    ``to_euler`` at 10^6 (this 2-core CPU, fresh processes): one ``jvp`` 5.1 against 21 ms
+    (float32) and 20-22 against 40-43 ms (float64), the value and the gradient the same
+    (7.2-7.8 ms, 18.8-20.0 ms float32)."""
     return tuple(c[..., 0] for c in jnp.split(x, x.shape[-1], axis=-1))
 
 
-@jax.custom_jvp
-def _components(x: Array) -> tuple[Array, ...]:
-    return split(x)
+_components_p = Primitive("jaxquat_components")
+_components_p.multiple_results = True
 
 
-@_components.defjvp
+def _components_transpose(cts, x):
+    """The cotangent of ``x`` from its components' cotangents ``cts``: on CPU the transpose of
+    ``dx @ e_i`` (see :func:`components`), elsewhere a stack."""
+    aval = x.aval
+    cts = [ad.instantiate_zeros(c) for c in cts]
+    cts = [jnp.broadcast_to(c, aval.shape[:-1]).astype(aval.dtype) for c in cts]
+
+    def by_products(*cts):
+        eye = jnp.eye(aval.shape[-1], dtype=aval.dtype)
+        columns = jax.linear_transpose(
+            lambda dx: tuple(matmul(dx, eye[:, i]) for i in range(aval.shape[-1])),
+            jax.ShapeDtypeStruct(aval.shape, aval.dtype),
+        )
+        return columns(tuple(cts))[0]
+
+    return [_trig.on_cpu(by_products, lambda *c: jnp.stack(c, axis=-1), *cts)]
+
+
 def _components_jvp(primals, tangents):
     (x,), (dx,) = primals, tangents
-    eye = jnp.eye(x.shape[-1], dtype=x.dtype)
-    return _components(x), tuple(matmul(dx, eye[:, i]) for i in range(x.shape[-1]))
+    return _components_p.bind(x), _components_p.bind(ad.instantiate_zeros(dx))
+
+
+def _components_batch(args, dims):
+    (x,), (d,) = args, dims
+    return _components_p.bind(jnp.moveaxis(x, d, 0)), [0] * x.shape[-1]
+
+
+_components_p.def_impl(split)
+_components_p.def_abstract_eval(lambda x: [x.update(shape=x.shape[:-1])] * x.shape[-1])
+mlir.register_lowering(_components_p, mlir.lower_fun(split, multiple_results=True))
+ad.primitive_jvps[_components_p] = _components_jvp
+ad.primitive_transposes[_components_p] = _components_transpose
+batching.primitive_batchers[_components_p] = _components_batch
 
 
 @jax.custom_jvp
@@ -96,7 +132,11 @@ def assemble(*c: Array) -> Array:
 
 @assemble.defjvp
 def _assemble_jvp(primals, tangents):
-    return assemble(*primals), jnp.stack(tangents, axis=-1)
+    """The tangents stacked after one loop computes them all (:func:`jaxquat._fusion.one_loop`):
+    a stack fused with their expressions evaluates the shared work once per component, as the
+    value's would. One ``jvp`` at 10^6 (float32, one core): ``from_euler`` 95 -> 19 ms,
+    ``slerp`` 240 -> 41 ms. Reverse mode transposes the loop into the identity."""
+    return assemble(*primals), jnp.stack(_fusion.one_loop(jnp.broadcast_arrays(*tangents)), axis=-1)
 
 
 def by_products(*c: Array) -> Array:
