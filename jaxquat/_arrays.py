@@ -56,19 +56,19 @@ def components(x: Array) -> list[Array]:
     against 147 / 186 ms with the split's own transpose, ``from_euler`` 1.1 / 2.7 against 3.0 /
     6.7 ms, ``to_rotvec`` 18 / 33 against 8.6 / 62 ms. Until session 46 the products were the
     tangent itself (a ``custom_jvp``), which forward mode paid: one ``jvp`` at 10^6, float32, one
-    core, ``to_rotvec`` 29.3 -> 6.4 ms, ``from_rotvec`` 28.5 -> 4.2 ms with the split (and
-    :func:`assemble`'s tangents in one loop). Elsewhere (GPU, TPU) both are JAX's own: a split
-    and a concatenation."""
+    core, least of 9, ``to_rotvec`` 29.3 -> 5.9 ms, ``from_rotvec`` 28.5 -> 4.0 ms with the split
+    and :func:`assemble`'s tangents in one loop (``docs/benchmarks.md`` has the table).
+    Elsewhere (GPU, TPU) both are JAX's own: a split and a concatenation."""
     return list(_components_p.bind(x))
 
 
 def split(x: Array) -> tuple[Array, ...]:
     """The components ``x[..., i]`` of ``x`` by one ``jnp.split``, differentiated by JAX (reverse
     mode transposes the split into a concatenation): for kernels whose own derivative rule is
-    written out, where the products of :func:`components` would only cost forward mode.
-    ``to_euler`` at 10^6 (this 2-core CPU, fresh processes): one ``jvp`` 5.1 against 21 ms
-    (float32) and 20-22 against 40-43 ms (float64), the value and the gradient the same
-    (7.2-7.8 ms, 18.8-20.0 ms float32)."""
+    written out (``to_euler``). Against :func:`components` as it was until session 46 (its
+    tangents by products too), ``to_euler`` at 10^6 (this 2-core CPU, fresh processes): one
+    ``jvp`` 5.1 against 21 ms (float32) and 20-22 against 40-43 ms (float64), the value and the
+    gradient the same (7.2-7.8 ms, 18.8-20.0 ms float32)."""
     return tuple(c[..., 0] for c in jnp.split(x, x.shape[-1], axis=-1))
 
 
