@@ -101,7 +101,8 @@ def _components_jvp(primals, tangents):
 
 def _components_batch(args, dims):
     (x,), (d,) = args, dims
-    return _components_p.bind(jnp.moveaxis(x, d, 0)), [0] * x.shape[-1]
+    x = jnp.moveaxis(x, d, 0)  # the mapped axis first, the components last (jacfwd maps the last)
+    return _components_p.bind(x), [0] * x.shape[-1]
 
 
 _components_p.def_impl(split)

@@ -244,8 +244,10 @@ def test_components_under_vmap_on_any_axis_and_jacfwd(seed):
     x = jnp.asarray(np.random.default_rng(seed).normal(size=(3, 5, 4)), DTYPE)
     out = jax.vmap(lambda y: jnp.stack(_arrays.components(y), axis=-1), in_axes=1, out_axes=1)(x)
     np.testing.assert_array_equal(out, x)
+    out = jax.vmap(lambda y: jnp.stack(_arrays.components(y), axis=-1), in_axes=-1, out_axes=-1)(x[..., :3, :])
+    np.testing.assert_array_equal(out, x[..., :3, :])  # the mapped axis last: components of shape (3, 3)
     eye = np.eye(4)
-    for jac in (jax.jacfwd, jax.jacrev):
+    for jac in (jax.jacfwd, jax.jacrev):  # jacfwd maps the tangents on their last axis
         np.testing.assert_array_equal(jax.jit(jac(lambda y: jnp.stack(_arrays.components(y))))(x[0, 0]), eye)
 
 
