@@ -135,8 +135,9 @@ def assemble(*c: Array) -> Array:
 def _assemble_jvp(primals, tangents):
     """The tangents stacked after one loop computes them all (:func:`jaxquat._fusion.one_loop`):
     a stack fused with their expressions evaluates the shared work once per component, as the
-    value's would. One ``jvp`` at 10^6 (float32, one core): ``from_euler`` 95 -> 19 ms,
-    ``slerp`` 240 -> 41 ms. Reverse mode transposes the loop into the identity."""
+    value's would. One ``jvp`` at 10^6 (float32, one core, least of 9), this change alone:
+    ``from_euler`` 95 -> 19 ms, ``slerp`` 240 -> 41 ms (4.2 and 30 ms with :func:`components`'
+    split tangents too). Reverse mode transposes the loop into the identity."""
     return assemble(*primals), jnp.stack(_fusion.one_loop(jnp.broadcast_arrays(*tangents)), axis=-1)
 
 
