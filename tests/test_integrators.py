@@ -643,6 +643,32 @@ def test_a_solve_with_a_progress_bar_takes_the_batch_whole(monkeypatch):
     assert sizes[0] == 2 and sizes[1] >= 5, sizes
 
 
+def test_a_concrete_diagonal_tensor_is_taken_as_diagonal_under_a_user_s_jit(monkeypatch):
+    """Whether the inertia is diagonal is asked of the tensor as given, not of its broadcast to the
+    batch (a tracer under ``jit``): the closed form then runs without diagonalising each body
+    (``_to_principal``), and the scan path's step reads only the moments; a full tensor is still
+    diagonalised. Traced only (``lower``): nothing is compiled."""
+    from jaxquat.integration import simulation, struct_of_arrays
+
+    seen = []
+    to_principal, euler = simulation._to_principal, struct_of_arrays.EulerEquations
+    monkeypatch.setattr(simulation, "_to_principal", lambda *a: seen.append("principal") or to_principal(*a))
+    monkeypatch.setattr(
+        struct_of_arrays, "EulerEquations", lambda i, t, diagonal: seen.append(diagonal) or euler(i, t, diagonal)
+    )
+    q0, w0 = jq.identity((5,), DTYPE), jnp.ones((5, 3), DTYPE)
+    diagonal = jnp.diag(jnp.asarray(I_DIAG, DTYPE))
+    rotation = jq.to_matrix(jq.normalize(jnp.asarray([1.0, 0.2, -0.3, 0.4], DTYPE)))
+    ts = np.linspace(0.0, 0.2, 3)
+    for inertia, kw in (
+        (diagonal, {}),
+        (diagonal, dict(solver=jq.RKMK4(), dt0=0.1)),
+        (rotation @ diagonal @ rotation.T, {}),
+    ):
+        jax.jit(functools.partial(lambda q, w, i, kw: jq.simulate(q, w, i, ts, **kw).q, i=inertia, kw=kw)).lower(q0, w0)
+    assert seen == [True, "principal"], seen
+
+
 # A learned torque (an MLP with its weights in ``args``) and an element-wise PD law (its gains in
 # ``args``) under XLA's default flags, in float64: the suite's own processes compile with the
 # legacy emitters (tests/conftest.py), which hid the defects this checks. The scan path's
