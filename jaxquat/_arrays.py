@@ -81,7 +81,6 @@ def _components_transpose(cts, x):
     ``dx @ e_i`` (see :func:`components`), elsewhere a stack."""
     aval = x.aval
     cts = [ad.instantiate_zeros(c) for c in cts]
-    cts = [jnp.broadcast_to(c, aval.shape[:-1]).astype(aval.dtype) for c in cts]
 
     def by_products(*cts):
         eye = jnp.eye(aval.shape[-1], dtype=aval.dtype)
