@@ -35,7 +35,7 @@ import jax.numpy as jnp
 from jax import Array, lax
 from jaxtyping import ArrayLike, Float
 
-from .. import _arrays, _checks, _trig
+from .. import _arrays, _checks, _fusion, _trig
 
 __all__ = ["ellipj", "ellipk", "elliprf", "elliprj"]
 
@@ -232,19 +232,30 @@ def _rc_one(e: Array) -> Array:
 def carlson(x: Array, y: Array, z: Array, p: Array) -> tuple[Array, Array]:
     """``(R_F(x, y, z), R_J(x, y, z, p))`` from one duplication loop: both integrals move
     ``x, y, z`` by the same step, so R_F's series is evaluated on R_J's final arguments (one loop
-    instead of two where a caller needs both: the incomplete integral of the third kind)."""
+    instead of two where a caller needs both: the incomplete integral of the third kind).
+
+    In reverse mode each step is recomputed from its carry (``jax.checkpoint``) rather than
+    storing its dozen intermediates for every step, and the carry's values and cotangents are
+    each formed in one loop (:mod:`jaxquat._fusion`). Measured (the gradient of ``Pi(n; r | m)``
+    at 101 000 points, one core of this 2-core CPU): 192 -> 68 ms in float32, 337 -> 137 ms in
+    float64, against 19 / 37 ms for the value; ``simulate``'s closed form (1000 bodies x 101 times)
+    gradient 280 -> 154 ms and 510 -> 283 ms."""
+    x, y, z, p = jnp.broadcast_arrays(x, y, z, p)
     delta = (p - x) * (p - y) * (p - z)
 
-    def step(_, carry):
-        x, y, z, p, total, scale = carry
+    @jax.checkpoint
+    def step(i, carry):
+        x, y, z, p, total = _fusion.one_loop_backward(carry)
+        scale = jnp.asarray(0.25, x.dtype) ** i.astype(x.dtype)
         sx, sy, sz, lam = _duplicate(x, y, z)
         sp = jnp.sqrt(p)
         d = (sp + sx) * (sp + sy) * (sp + sz)
         total = total + scale / d * _rc_one(delta * scale**3 / (d * d))
-        return (x + lam) / 4, (y + lam) / 4, (z + lam) / 4, (p + lam) / 4, total, scale / 4
+        return _fusion.one_loop_both_ways(((x + lam) / 4, (y + lam) / 4, (z + lam) / 4, (p + lam) / 4, total))
 
-    one = jnp.ones_like(x)
-    x, y, z, p, total, scale = lax.fori_loop(0, _DUPLICATION_STEPS, step, (x, y, z, p, 0 * one, one))
+    carry = lax.fori_loop(0, _DUPLICATION_STEPS, step, (x, y, z, p, jnp.zeros_like(x)))
+    x, y, z, p, total = _fusion.one_loop_backward(carry)
+    scale = jnp.asarray(0.25**_DUPLICATION_STEPS, x.dtype)
     a = (x + y + z + 2 * p) / 5
     dx, dy, dz = 1 - x / a, 1 - y / a, 1 - z / a
     dp = -(dx + dy + dz) / 2
