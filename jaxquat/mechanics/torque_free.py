@@ -52,6 +52,7 @@ from .. import _arrays, _checks, _fusion, _quaternion, _rotation, _safe, _trig
 from .elliptic import (
     agm,
     am_given,
+    complete_rd,
     complete_y,
     legendre,
     partial_y,
@@ -144,7 +145,8 @@ class _Motion(NamedTuple):
     """What the elliptic solution needs of one body and its initial state, formed once for all
     its times (:func:`_motion`; names as in the module docstring, ``s`` the sign of ``w_a``,
     ``wb_hat = A_b sn(u_0)``, ``abs_wa = A_a dn(u_0)``). The fields from ``e`` on end in a component
-    axis; ``agm`` is the AGM of ``m`` (:func:`jaxquat.mechanics.elliptic.agm`)."""
+    axis; ``agm`` is the AGM of ``m`` (:func:`jaxquat.mechanics.elliptic.agm`) and ``rd_complete``
+    ``R_D(0, 1, 1 - m)`` (:func:`jaxquat.mechanics.elliptic.complete_rd`)."""
 
     m: Array
     mc: Array
@@ -168,6 +170,7 @@ class _Motion(NamedTuple):
     ic: Array
     pi_full: Array  # Pi(-nu | m), complete
     pi0: Array  # Pi(-nu; am u_0 | m)
+    rd_complete: Array
     chi0: Array
     u0: Array  # only rounded: no derivatives
     e: Array  # the fixed body axis +-e_a
@@ -255,6 +258,7 @@ def _motion(q0: Array, w0: Array, moments: Array, a: Array, b: Array, c: Array) 
         ic,
         pi_full=pi_full,
         pi0=pi0,
+        rd_complete=complete_rd(mc),
         chi0=_chi(_trig.atan2(sn0, cn0), sn0, cn0, kb, kc),
         u0=u0,
         e=e,
@@ -287,7 +291,7 @@ def _state_at(k: _Motion, t: Array) -> tuple[Array, Array]:
     # 1000 bodies x 101 times, float32 / float64: value 137 / 245 -> 118 / 226 ms, gradient
     # 870 / 2174 -> 803 / 2047 ms.
     sn_v, cn_v, dn_v = _fusion.one_loop_both_ways(
-        jnp.broadcast_arrays(*sn_cn_dn(am_given(lam * t, m, mc, *k.agm), m, mc))
+        jnp.broadcast_arrays(*sn_cn_dn(am_given(lam * t, m, mc, k.rd_complete, *k.agm), m, mc))
     )
     den = cn0 * cn0 + sn0 * sn0 * dn_v * dn_v
     wc_t = (wc * cn_v - r_cb * wb_hat * dn0 * sn_v * dn_v) / den
