@@ -97,6 +97,15 @@ def test_complete_and_carlson_against_scipy():
         tol=TOL * 10,
         what="R_J generic",
     )
+    # R_D (the amplitude's derivative in m; internal): the domain it is used on, x = cos^2 r and
+    # z = dn^2 in (0, 1] or x = tiny and z = 1 - m, and generic positive triples.
+    rd_x, rd_z = np.concatenate([x, a]), np.concatenate([y, c])
+    assert_close(
+        jax.jit(el.rd)(*(jnp.asarray(v, DTYPE) for v in (rd_x, np.ones(64), rd_z))) / sp.elliprd(rd_x, 1.0, rd_z),
+        np.ones(64),
+        tol=TOL * 10,
+        what="R_D",
+    )
 
 
 def test_incomplete_integrals_unwrap():
