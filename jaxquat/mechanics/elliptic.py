@@ -218,16 +218,18 @@ def _rf_series(x: Array, y: Array, z: Array) -> Array:
 
 
 def _rc_one(e: Array) -> Array:
-    """``R_C(1, 1 + e)``: ``atan(sqrt(e))/sqrt(e)`` (``e > 0``), ``atanh(sqrt(-e))/sqrt(-e)`` (``e < 0``)."""
+    """``R_C(1, 1 + e)``: ``atan(sqrt(e))/sqrt(e)`` (``e > 0``), ``atanh(sqrt(-e))/sqrt(-e)`` (``e < 0``).
+
+    ``atan`` is :func:`jaxquat._trig.atan2` and ``atanh(r)`` is ``log1p(2 r / (1 - r)) / 2``: XLA on
+    CPU evaluates ``jnp.arctan`` and ``jnp.arctanh`` by scalar library calls (float32, 1.6 million
+    elements, one core: ``arctan`` 14 ms, ``log1p`` 1.2 ms), and they were most of :func:`carlson`'s
+    time (101 000 points: 19 -> 8.4 ms in float32, 33 -> 17 ms in float64). The error on
+    ``-0.9 < e < 1`` is 2 ulp in both dtypes (``jnp.arctanh`` had 72 ulp in float64)."""
     small = jnp.abs(e) < 1e-3
     series = 1 - e / 3 + e * e / 5 - e**3 / 7 + e**4 / 9 - e**5 / 11
-    pos = jnp.where(small | (e < 0), 1.0, e)
-    neg = jnp.where(small | (e > 0), -0.5, e)
-    direct = jnp.where(
-        e > 0,
-        jnp.arctan(jnp.sqrt(pos)) / jnp.sqrt(pos),
-        jnp.arctanh(jnp.sqrt(-neg)) / jnp.sqrt(-neg),
-    )
+    t = jnp.sqrt(jnp.where(small, 1.0, jnp.abs(e)))
+    r = jnp.where(small | (e > 0), 0.5, t)  # atanh's argument, a safe 0.5 where it is not used
+    direct = jnp.where(e > 0, _trig.atan2(t, jnp.ones_like(t)), jnp.log1p(2 * r / (1 - r)) / 2) / t
     return jnp.where(small, series, direct)
 
 
