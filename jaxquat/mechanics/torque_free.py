@@ -276,7 +276,7 @@ def _chi(phi: Array, sn: Array, cn: Array, kb: Array, kc: Array) -> Array:
     return phi + _trig.atan2((kb - kc) * sn * cn, kc * cn * cn + kb * sn * sn)
 
 
-def _state_at(k: _Motion, t: Array) -> tuple[Array, Array]:
+def _state_at(k: _Motion, t: Array) -> tuple[list[Array], list[Array]]:
     """The elliptic solution at times ``t`` from the per-body part ``k`` (broadcast against ``t``)."""
     m, mc, lam, s, sigma, ell, ia, ic = k.m, k.mc, k.lam, k.s, k.sigma, k.ell, k.ia, k.ic
     r_cb, wb_hat, wc, sn0, cn0, dn0 = k.r_cb, k.wb_hat, k.wc, k.sn0, k.cn0, k.dn0
@@ -298,7 +298,6 @@ def _state_at(k: _Motion, t: Array) -> tuple[Array, Array]:
     wb_hat_t = (wb_hat * cn_v * dn_v + wc * dn0 * sn_v / r_cb) / den
     abs_wa_t = (k.abs_wa * dn_v - k.g * k.amp_a * wb_hat * wc * sn_v * cn_v / r_cb) / den
     wc_t, wb_hat_t, abs_wa_t = _fusion.one_loop_both_ways(jnp.broadcast_arrays(wc_t, wb_hat_t, abs_wa_t))
-    w_t = (s * abs_wa_t)[..., None] * k.ea + (-sigma * s * wb_hat_t)[..., None] * k.eb + wc_t[..., None] * k.ec
 
     # Precession angle about the angular momentum; the amplitude at t again as (sn, cn) from the
     # rates, the whole number of turns from ``a_N u``.
@@ -319,10 +318,30 @@ def _state_at(k: _Motion, t: Array) -> tuple[Array, Array]:
         + jnp.sign(ic - ia) * (_chi(2 * jnp.pi * turns + theta_t, snt, cnt, k.kb, k.kc) - k.chi0)
     )
     (psi,) = _fusion.one_loop_both_ways((psi,))
-    p_t = _rotation.minimal_rotation(k.e, k.moments * w_t / ell[..., None])
+    return _attitude(k, psi, s * abs_wa_t, -sigma * s * wb_hat_t, wc_t)
+
+
+def _attitude(k: _Motion, psi: Array, wa: Array, wb: Array, wc: Array) -> tuple[list[Array], list[Array]]:
+    """The components of ``q = left Exp(psi e / 2) p`` and of ``w`` from the precession angle and
+    the rates about the axes ``a, b, c`` (:func:`propagate` computes them in one loop).
+
+    ``p`` is the minimal rotation taking ``n = I w / |L|`` onto ``e``: ``(|n| + n.e, n x e)``
+    normalised, whose norm squared is ``2 |n| (|n| + n.e)``. Since ``e = sign(w_a) e_a``,
+    ``n.e = I_a |w_a| / |L| >= 0``, so ``n`` is never opposite ``e`` and the scalar part is
+    positive (the general :func:`jaxquat._rotation.minimal_rotation` handles both).
+    Written on components, the vector and quaternion forms' gradient compiled into a dozen loops
+    over ``(..., 3)`` and ``(..., 4)`` elements, each evaluating the shared work again."""
+    ea, eb, ec, e, moments = (_arrays.components(x) for x in (k.ea, k.eb, k.ec, k.e, k.moments))
+    w = [wa * ea[i] + wb * eb[i] + wc * ec[i] for i in range(3)]
+    n = [moments[i] * w[i] / k.ell for i in range(3)]
+    norm = jnp.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    scalar = norm + (n[0] * e[0] + n[1] * e[1] + n[2] * e[2])
+    inv = jax.lax.rsqrt(2 * norm * scalar)
+    cross = (n[1] * e[2] - n[2] * e[1], n[2] * e[0] - n[0] * e[2], n[0] * e[1] - n[1] * e[0])
+    p = [scalar * inv] + [x * inv for x in cross]
     sin_half, cos_half = _trig.sincos(psi / 2)
-    r = _quaternion.scalar_vector(cos_half, k.e, sin_half)
-    return _quaternion.multiply(_quaternion.multiply(k.left, r), p_t), w_t
+    r = [cos_half] + [x * sin_half for x in e]
+    return _quaternion.multiply_dense(_quaternion.multiply_dense(_arrays.components(k.left), r), p), w
 
 
 def _unit_pair(y: Array, x: Array) -> tuple[Array, Array]:
@@ -350,12 +369,16 @@ def propagate(q0: Array, omega0: Array, moments: Array, t: Array) -> tuple[Array
     times = (None,) * (t.ndim - (q0.ndim - 1))
     general, safe_w, safe_i, roles = _safe_state(moments, omega0)
     q_gen, w_gen = _state_at(_motion(q0, safe_w, safe_i, *roles).at_times(t), t)
+    # The steady rotation q0 Exp(w0 t) and the selects on components, in the one loop of the rest.
     q0, omega0, general = q0[(..., *times, slice(None))], omega0[(..., *times, slice(None))], general[(..., *times)]
-    q_steady = _quaternion.multiply(q0, _rotation.from_rotvec(omega0 * t[..., None]))
-    return (
-        jnp.where(general[..., None], q_gen, q_steady),
-        jnp.where(general[..., None], w_gen, jnp.broadcast_to(omega0, w_gen.shape)),
+    w0 = _arrays.components(omega0)
+    sinc, cos = _safe.sinc_cos_of_sq(0.25 * t * t * (w0[0] * w0[0] + w0[1] * w0[1] + w0[2] * w0[2]))
+    h = 0.5 * sinc * t
+    q_steady = _quaternion.multiply_dense(_arrays.components(q0), [cos, h * w0[0], h * w0[1], h * w0[2]])
+    out = _fusion.one_loop_both_ways(
+        jnp.broadcast_arrays(*(jnp.where(general, a, b) for a, b in zip(q_gen + w_gen, q_steady + w0)))
     )
+    return _arrays.assemble(*out[:4]), _arrays.assemble(*out[4:])
 
 
 def euler_poinsot(
