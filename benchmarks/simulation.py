@@ -18,9 +18,10 @@ Beside each throughput: the largest attitude error at T = 10 against the exact
 solution (jaxquat.euler_poinsot in float64) and the largest | |q| - 1 |.
 Also: the cost of autodiff against the forward pass (reverse mode: jax.grad of a
 final-attitude loss; forward mode: one jvp tangent, and jacfwd with 3 columns), float32 and
-float64, at batches 10^3 and 10^5, for simulate and the hand RK4 (checkpointed as simulate's
-scan path is), compile time (time to the first result of simulate, and of one optax step
-through it), and import time (import jaxquat, its first rotation function, its first simulate).
+float64, at batches 10^3 and 10^5, for simulate (RKMK4, and the default closed form) and the
+hand RK4 (checkpointed as simulate's scan path is), compile time (time to the first result
+of simulate, and of one optax step through it), and import time (import jaxquat, its first
+rotation function, its first simulate).
 
     python benchmarks/simulation.py [--batches 1 1000 100000] [--grad-batches 1000 100000]
                                     [--write docs/benchmarks.md]
@@ -149,6 +150,13 @@ def jaxquat_rkmk4_pd(q0, w0):
     return jaxquat_rkmk4(q0, w0, _pd_torque, jnp.asarray(PD_GAINS, q0.dtype))
 
 
+def jaxquat_closed_form(q0, w0):
+    """``simulate``'s default torque-free path (no ``solver``: :func:`jaxquat.euler_poinsot`) at the
+    same final time, the inertia a NumPy array as a user writes it (concrete, so known diagonal)."""
+    ts = np.asarray([0.0, STEPS * DT], q0.dtype)
+    return jq.simulate(q0, w0, np.diag(np.asarray(MOMENTS, q0.dtype)), ts).q[..., -1, :]
+
+
 def mjx_contender():
     """MJX free body with the same moments (None if mujoco-mjx is not installed)."""
     try:
@@ -217,8 +225,8 @@ def throughput(batches, repeats):
 def gradient_table(batches, repeats):
     """Forward pass, reverse mode (``jax.grad`` of a final-attitude loss), forward mode (one
     ``jax.jvp`` tangent on ``w0``, and ``jax.jacfwd`` with 3 columns: a rate offset shared by
-    the batch) for jaxquat's RKMK4 (torque-free, and with a PD torque law) and the hand RK4
-    (torque-free), float32 and float64: ``(dtype, batch, contender, forward, reverse, jvp,
+    the batch) for jaxquat's RKMK4 (torque-free, and with a PD torque law), the default closed
+    form and the hand RK4 (torque-free), float32 and float64: ``(dtype, batch, contender, forward, reverse, jvp,
     jacfwd)`` in seconds."""
     rows = []
     for dtype in (F32, jnp.float64):
@@ -230,6 +238,7 @@ def gradient_table(batches, repeats):
             for name, run in (
                 ("jaxquat simulate, RKMK4", jaxquat_rkmk4),
                 ("jaxquat simulate, RKMK4, PD torque", jaxquat_rkmk4_pd),
+                ("jaxquat simulate, closed form (default)", jaxquat_closed_form),
                 ("hand-written RK4, checkpointed", hand_rk4_checkpointed),
             ):
                 rows.append((jnp.dtype(dtype).name, n, name, *_autodiff_times(run, q0, w0, target, repeats, warm)))
