@@ -365,7 +365,9 @@ def propagate(q0: Array, omega0: Array, moments: Array, t: Array) -> tuple[Array
     Forming the per-body part once instead of at every time (``simulate``'s default path, 1000
     bodies x 101 saved times, this 2-core CPU): a call 31-39 ms against 96-99 ms in float32, 60
     against 207 ms in float64 (the loops of the AGM and of one Carlson evaluation run per body;
-    ``docs/benchmarks.md``)."""
+    ``docs/benchmarks.md``). Session 47 made the per-time part cheaper (one Landen descent, Carlson's
+    ``R_C`` vectorised, the attitude on components): 16-18 ms and 31-37 ms, the gradient 76-79 and
+    143-152 ms (``docs/integrators.md``, "The closed form's derivatives")."""
     times = (None,) * (t.ndim - (q0.ndim - 1))
     general, safe_w, safe_i, roles = _safe_state(moments, omega0)
     q_gen, w_gen = _state_at(_motion(q0, safe_w, safe_i, *roles).at_times(t), t)
