@@ -624,6 +624,46 @@ def test_steps_in_segments_give_the_same_states_and_derivatives(monkeypatch):
             assert_close(a, b, tol=1e-14 if X64 else 1e-6, what=f"{len(ts)} times")
 
 
+def test_simulate_s_chunks_with_segmented_steps_are_not_rematerialised_and_agree(monkeypatch):
+    """When a chunk's steps run in segments, ``simulate`` does not also rematerialise the chunk
+    (a third forward pass). Chunks of 3 bodies with 20 LieEuler steps in segments of 4: the states,
+    the gradient in ``w0`` and a ``jvp`` equal the batch's solved whole and unsegmented."""
+    from jaxquat.integration import fixed_step, simulation
+
+    rng = np.random.default_rng(13)
+    q0 = jq.normalize(jnp.asarray(rng.normal(size=(10, 4)), DTYPE))
+    w0 = jnp.asarray(rng.normal(size=(10, 3)), DTYPE)
+    inertia = jnp.diag(jnp.asarray(I_DIAG, DTYPE))
+    ts = np.asarray([0.0, 0.2])
+
+    def states(w0):
+        sim = jq.simulate(q0, w0, inertia, ts, torque=_spin_torque, args=0.3, solver=jq.LieEuler(), dt0=0.01)
+        return sim.q, sim.omega
+
+    def cost(w):
+        q, omega = states(w)
+        return jnp.sum(q[:, -1, 1:] ** 2) + jnp.sum(jnp.sin(omega)), (q, omega)
+
+    def run():
+        grad, values = jax.grad(cost, has_aux=True)(w0)
+        return values, grad, jax.jvp(states, (w0,), (jnp.ones_like(w0),))[1]
+
+    whole = run()
+    segments, remats = [], []
+    original_segments, original_chunks = fixed_step._in_segments, simulation._in_chunks
+    monkeypatch.setattr(fixed_step, "_in_segments", lambda *a: segments.append(a[3]) or original_segments(*a))
+    monkeypatch.setattr(
+        simulation, "_in_chunks", lambda *a, remat: remats.append(remat) or original_chunks(*a, remat=remat)
+    )
+    monkeypatch.setattr(fixed_step, "_on_cpu", lambda: True)
+    monkeypatch.setattr(fixed_step, "_SEGMENT_BYTES", 0)
+    monkeypatch.setattr(simulation, "_CHUNK_BYTES", 3 * jnp.dtype(DTYPE).itemsize)
+    segmented = run()
+    assert set(segments) == {4} and set(remats) == {False}, (segments, remats)
+    for a, b in zip(jax.tree.leaves(segmented), jax.tree.leaves(whole), strict=True):
+        assert_close(a, b, tol=1e-13 if X64 else 1e-6, what="segmented chunks")
+
+
 @pytest.mark.skipif(not X64, reason="8 s a pass: the chunks' bookkeeping does not depend on the dtype")
 def test_an_adaptive_batch_larger_than_a_chunk_is_solved_chunk_by_chunk_with_the_same_results(monkeypatch):
     """The adaptive path's vmapped solves run in chunks of at most ``_ADAPTIVE_CHUNK`` bodies (at
