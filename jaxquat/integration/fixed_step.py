@@ -28,9 +28,9 @@ __all__ = ["solve_fixed_steps"]
 # a program's temporaries in one buffer, and above glibc's 32 MiB mmap threshold that buffer is
 # mapped afresh and faulted in at every call. Measured (simulate's scan path, 1000 RKMK4 steps,
 # one core of this 2-core EPYC; docs/integrators.md, "Large batches on CPU"): the gradient at 1000
-# bodies in float64 78 -> 62 ms (56 -> 4 MB of temporaries), at 10^4 bodies 778 -> 683 ms in
-# float64 and 385 -> 343 ms in float32. Below it one pass more would cost more than it saves
-# (1000 bodies, float32, 28 MB: 29 -> 30-31 ms). CPU only: a GPU has no such allocator.
+# bodies in float64 77-79 -> 60-62 ms (56 -> 4 MB of temporaries), at 10^4 bodies 773 -> 724 ms in
+# float64 and 385-391 -> 309-389 ms in float32. Below it one pass more would cost more than it
+# saves (1000 bodies, float32, 28 MB: 29 -> 30-31 ms). CPU only: a GPU has no such allocator.
 _SEGMENT_BYTES = 32 * 2**20
 
 
@@ -113,8 +113,8 @@ def scan_steps(
     rematerialise each step in reverse mode. ``saved(y)``: the part of the state kept at each
     of ``ts`` (all of it by default)."""
     one_step = jax.checkpoint(step) if checkpoint else step
-    stored = substeps * sum(jnp.size(x) * jnp.result_type(x).itemsize for x in jax.tree.leaves(y0))
-    segment = _segment_length(substeps) if checkpoint and stored > _SEGMENT_BYTES and _on_cpu() else 0
+    state_bytes = sum(jnp.size(x) * jnp.result_type(x).itemsize for x in jax.tree.leaves(y0))
+    segment = segment_length(substeps, state_bytes) if checkpoint else 0
 
     def interval(carry, xs):
         t0, t1, step_args = xs
@@ -151,10 +151,13 @@ def _on_cpu() -> bool:
     return jax.default_backend() == "cpu"
 
 
-def _segment_length(substeps: int) -> int:
-    """About ``sqrt(substeps)`` steps per segment: the states stored in reverse mode are the
-    segments' starts plus one segment's steps."""
-    return max(2, round(substeps**0.5))
+def segment_length(substeps: int, state_bytes: int) -> int:
+    """Steps per segment of an interval of ``substeps`` steps on a state of ``state_bytes``
+    (:data:`_SEGMENT_BYTES`), 0 for none: about ``sqrt(substeps)``, so the states stored in reverse
+    mode are the segments' starts plus one segment's steps."""
+    if substeps > 1 and substeps * state_bytes > _SEGMENT_BYTES and _on_cpu():
+        return max(2, round(substeps**0.5))
+    return 0
 
 
 def _in_segments(inner: Callable, carry: Any, ks: Array, length: int) -> Any:
