@@ -280,7 +280,8 @@ def rd(x: Array, y: Array, z: Array) -> Array:
     """Carlson's ``R_D(x, y, z) = R_J(x, y, z, z)`` by its own duplication loop: with ``p = z`` each
     step's term is ``3 4^-k / (sqrt(z) (z + lambda))``, without :func:`carlson`'s ``R_C`` (an
     ``atan``, an ``atanh`` and a series per step, all evaluated at 0 here). Measured (101 000
-    points, float32, one core): 18 ms by :func:`carlson`, 4 ms by this loop."""
+    points, one core, float32 / float64): 18.1 / 32.5 ms through :func:`carlson` as it was before
+    its ``R_C`` was vectorised, 1.9 / 4.1 ms by this loop."""
     x, y, z = jnp.broadcast_arrays(x, y, z)
 
     def step(i, carry):
