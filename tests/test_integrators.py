@@ -589,6 +589,7 @@ def test_steps_in_segments_give_the_same_states_and_derivatives(monkeypatch):
     at every call). Here 10 steps per interval (3 segments of 3, then 1), one interval and two: the
     states, the gradient in the initial state and in ``args``, and a ``jvp`` equal the unsegmented
     scan's to rounding, and the segments did run (a spy)."""
+    from jaxquat import _trig
     from jaxquat.integration import fixed_step
 
     def step(y, t0, t1, args, jump):
@@ -611,7 +612,7 @@ def test_steps_in_segments_give_the_same_states_and_derivatives(monkeypatch):
     calls = []
     original = fixed_step._in_segments
     monkeypatch.setattr(fixed_step, "_in_segments", lambda *a: calls.append(a[3]) or original(*a))
-    monkeypatch.setattr(fixed_step, "_on_cpu", lambda: True)  # the test is about the segments, not the platform
+    monkeypatch.setattr(_trig, "_cpu", lambda: True)  # the test is about the segments, not the platform
     for ts in (jnp.asarray([0.0, 1.0], DTYPE), jnp.asarray([0.0, 0.5, 1.0], DTYPE)):
         whole = run(ts)
         assert not calls
@@ -628,6 +629,7 @@ def test_simulate_s_chunks_with_segmented_steps_are_not_rematerialised_and_agree
     """When a chunk's steps run in segments, ``simulate`` does not also rematerialise the chunk
     (a third forward pass). Chunks of 3 bodies with 20 LieEuler steps in segments of 4: the states,
     the gradient in ``w0`` and a ``jvp`` equal the batch's solved whole and unsegmented."""
+    from jaxquat import _trig
     from jaxquat.integration import fixed_step, simulation
 
     rng = np.random.default_rng(13)
@@ -655,7 +657,7 @@ def test_simulate_s_chunks_with_segmented_steps_are_not_rematerialised_and_agree
     monkeypatch.setattr(
         simulation, "_in_chunks", lambda *a, remat: remats.append(remat) or original_chunks(*a, remat=remat)
     )
-    monkeypatch.setattr(fixed_step, "_on_cpu", lambda: True)
+    monkeypatch.setattr(_trig, "_cpu", lambda: True)
     monkeypatch.setattr(fixed_step, "_SEGMENT_BYTES", 0)
     monkeypatch.setattr(simulation, "_CHUNK_BYTES", 3 * jnp.dtype(DTYPE).itemsize)
     segmented = run()

@@ -21,6 +21,8 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
+from .. import _trig
+
 __all__ = ["solve_fixed_steps"]
 
 # Reverse mode stores one state per step. Past this many bytes per interval, the steps run in
@@ -147,15 +149,11 @@ def scan_steps(
     return jax.tree.map(lambda a, b: jnp.concatenate([jnp.asarray(a)[None], b]), saved(y0), ys)
 
 
-def _on_cpu() -> bool:
-    return jax.default_backend() == "cpu"
-
-
 def segment_length(substeps: int, state_bytes: int) -> int:
     """Steps per segment of an interval of ``substeps`` steps on a state of ``state_bytes``
     (:data:`_SEGMENT_BYTES`), 0 for none: about ``sqrt(substeps)``, so the states stored in reverse
     mode are the segments' starts plus one segment's steps."""
-    if substeps > 1 and substeps * state_bytes > _SEGMENT_BYTES and _on_cpu():
+    if substeps > 1 and substeps * state_bytes > _SEGMENT_BYTES and _trig.on_cpu(lambda: True, lambda: False):
         return max(2, round(substeps**0.5))
     return 0
 

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .. import _arrays, _checks, _quaternion, _rotation
+from .. import _arrays, _checks, _quaternion, _rotation, _trig
 from ..mechanics.inertia import validated
 from . import fixed_step, struct_of_arrays
 from .fixed_step import solve_fixed_steps
@@ -223,7 +223,7 @@ def simulate(
     adjoint = diffrax.RecursiveCheckpointAdjoint(checkpoints=_CHECKPOINTS) if adjoint is None else adjoint
     diagonal = substeps is not None and diagonal_given
     # a GPU takes the batch whole, and so does a solve with a progress bar (one bar, not one a chunk)
-    in_chunks = jax.default_backend() == "cpu" and not progress
+    in_chunks = _trig.on_cpu(lambda: True, lambda: False) and not progress
     chunks = (_CHUNK_BYTES // q0.dtype.itemsize, _ADAPTIVE_CHUNK) if in_chunks else (q0.size, q0.size)
     config = _Config(
         solver,
