@@ -367,7 +367,7 @@ def _solve(cfg: _Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> 
             # whole: its stored states are the segments' starts already, and a third forward pass
             # cost more than it saved (10^5 float32 bodies x 1000 RKMK4 steps, one core: the gradient
             # 3561 ms unsegmented, 4070 ms segmented and rematerialised, 3358 ms segmented alone).
-            state_bytes = 7 * _chunk_size(flat[0].shape[0], cfg.chunks[0]) * flat[0].dtype.itemsize
+            state_bytes = 7 * _chunk_size(flat[0].shape[0], cfg.chunks[0]) * flat[0].dtype.itemsize  # q and w
             remat = not fixed_step.segment_length(substeps, state_bytes)
             qs, ws = _in_chunks(batch_first, cfg.chunks[0], *flat, remat=remat)
             sol = None
@@ -390,8 +390,8 @@ def _in_chunks(solve: Callable, size: int, q: Array, w: Array, inertia: Array, r
     n = q.shape[0]
     if n <= size:
         return solve(q, w, inertia)
-    count = -(-n // size)
     size = _chunk_size(n, size)
+    count = -(-n // size)
     per_body = inertia.ndim == 3
     parts = [q, w, inertia] if per_body else [q, w]
     pad = count * size - n
