@@ -11,6 +11,8 @@ package (see :mod:`jaxquat._quaternion`).
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import functools
 import operator
 from typing import Any
@@ -36,8 +38,11 @@ def scalars(*xs: Array) -> tuple[Array, ...]:
     polynomial is evaluated three or four times per element. An optimisation
     barrier makes it one pass that stores the scalars and one cheap pass that
     assembles the vectors. On CPU only (measured there; ``_trig.on_cpu``): other platforms
-    get the values as they are and XLA's own fusion.
+    get the values as they are and XLA's own fusion. In kernel mode (:func:`jaxquat._trig.kernel_mode`)
+    the values as they are: a derivative kernel is one loop, in which each scalar is computed once.
     """
+    if _trig.in_kernel():
+        return xs
     return _trig.on_cpu(lambda *a: jax.lax.optimization_barrier(a), lambda *a: a, *xs)
 
 
@@ -58,8 +63,32 @@ def components(x: Array) -> list[Array]:
     tangent itself (a ``custom_jvp``), which forward mode paid: one ``jvp`` at 10^6, float32, one
     core, least of 9, ``to_rotvec`` 29.3 -> 5.9 ms, ``from_rotvec`` 28.5 -> 4.0 ms with the split
     and :func:`assemble`'s tangents in one loop (``docs/benchmarks.md`` has the table).
-    Elsewhere (GPU, TPU) both are JAX's own: a split and a concatenation."""
+    Elsewhere (GPU, TPU) both are JAX's own: a split and a concatenation; in kernel mode
+    (:func:`jaxquat._trig.kernel_mode`) a plain split, whose transpose stays element-wise."""
+    if _trig.in_kernel():
+        return next((list(c) for y, c in _STACKED.get() if y is x), None) or list(split(x))
     return list(_components_p.bind(x))
+
+
+_STACKED: contextvars.ContextVar[tuple[tuple[Array, list[Array]], ...]] = contextvars.ContextVar(
+    "jaxquat_stacked", default=()
+)
+
+
+@contextlib.contextmanager
+def stacked(parts: list[list[Array]], shapes: list[tuple[int, ...]]):
+    """The arrays ``jnp.stack(c, axis=-1)`` of each list of components ``c`` in ``parts``, their
+    last axis reshaped to ``shapes`` (``(4,)``, ``(3, 3)``); inside the ``with`` block, in kernel
+    mode, :func:`components` of one of them returns its ``c``
+    themselves. A derivative kernel traces its op on these, so that the cotangents reach the
+    components as they are, not through the concatenation that transposes a split (which XLA
+    fuses with their producers into one loop per component)."""
+    arrays = [jnp.stack(c, axis=-1).reshape(c[0].shape + shape) for c, shape in zip(parts, shapes)]
+    token = _STACKED.set(_STACKED.get() + tuple(zip(arrays, parts)))
+    try:
+        yield arrays
+    finally:
+        _STACKED.reset(token)
 
 
 def split(x: Array) -> tuple[Array, ...]:
@@ -112,10 +141,10 @@ ad.primitive_transposes[_components_p] = _components_transpose
 batching.primitive_batchers[_components_p] = _components_batch
 
 
-@jax.custom_jvp
 def assemble(*c: Array) -> Array:
     """``jnp.stack(c, axis=-1)``, formed on CPU as ``sum_i c_i e_i^T`` (exact for finite values;
-    a NaN or infinite component makes its whole row NaN).
+    a NaN or infinite component makes its whole row NaN); in kernel mode
+    (:func:`jaxquat._trig.kernel_mode`) a plain stack, which the kernel takes apart again.
 
     On CPU XLA fuses a stack along the minor axis with the expressions that produce its
     components into one loop over the output's elements that branches on the component and
@@ -127,17 +156,24 @@ def assemble(*c: Array) -> Array:
     ``sum(f(x) * W)`` took 41 against 26 ms (``slerp``, float32; 4.0 against 1.1 ms for
     ``from_euler``), though forward mode gained (``jax.jvp`` of ``slerp`` 33 against 119 ms).
     Elsewhere (GPU, TPU) a plain stack."""
+    if _trig.in_kernel():
+        return jnp.stack(jnp.broadcast_arrays(*c), axis=-1)
+    return _assemble(*c)
+
+
+@jax.custom_jvp
+def _assemble(*c: Array) -> Array:
     return _trig.on_cpu(by_products, lambda *c: jnp.stack(c, axis=-1), *c)
 
 
-@assemble.defjvp
+@_assemble.defjvp
 def _assemble_jvp(primals, tangents):
     """The tangents stacked after one loop computes them all (:func:`jaxquat._fusion.one_loop`):
     a stack fused with their expressions evaluates the shared work once per component, as the
     value's would. One ``jvp`` at 10^6 (float32, one core, least of 9), this change alone:
     ``from_euler`` 95 -> 19 ms, ``slerp`` 240 -> 41 ms (4.2 and 30 ms with :func:`components`'
     split tangents too). Reverse mode transposes the loop into the identity."""
-    return assemble(*primals), jnp.stack(_fusion.one_loop(jnp.broadcast_arrays(*tangents)), axis=-1)
+    return _assemble(*primals), jnp.stack(_fusion.one_loop(jnp.broadcast_arrays(*tangents)), axis=-1)
 
 
 def by_products(*c: Array) -> Array:

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from . import _arrays, _quaternion, _safe
+from . import _arrays, _derivatives, _quaternion, _safe
 
 
 def to_matrix(q: Array) -> Array:
@@ -140,7 +140,7 @@ def from_matrix_shepperd(m: Array) -> Array:
     return _arrays.assemble(*(c * scale for c in col))
 
 
-def to_rotvec(q: Array, rescale: bool = False) -> Array:
+def _to_rotvec(q: Array, rescale: bool = False) -> Array:
     """The shortest rotation vector ``2 atan2(|v|, |w|) sign(w) v / |v|`` of ``q = (w, v)``
     (series near the identity); with ``rescale``, of :func:`_safe.rescaled` ``q`` (any
     non-zero scale).
@@ -171,6 +171,9 @@ def to_rotvec(q: Array, rescale: bool = False) -> Array:
         f2, q = _arrays.scalars(f2, q)  # q's copy is not identified with q: its components are taken again
         _, x, y, z = canonical(q)
     return _arrays.assemble(f2 * x, f2 * y, f2 * z)
+
+
+to_rotvec = _derivatives.derivatives_in_one_loop(_to_rotvec, core=(1,), out_core=1)
 
 
 def from_rotvec(r: Array) -> Array:
@@ -205,7 +208,7 @@ def right_jacobian_inverse(phi: Array) -> Array:
     return _jacobian(phi, 0.5, _safe.jacobian_inverse_coeff(s))
 
 
-def slerp(p: Array, q: Array, t: Array) -> Array:
+def _slerp(p: Array, q: Array, t: Array) -> Array:
     """``p (p* q)^t`` along the shorter arc (``q`` flipped when ``p . q < 0``), as
     ``p exp(t log(p* q))``.
 
@@ -222,6 +225,9 @@ def slerp(p: Array, q: Array, t: Array) -> Array:
     sinc, cos = _safe.sinc_cos_of_sq(scale * scale * nsq)
     k = scale * sinc
     return _arrays.assemble(*_quaternion.multiply_dense(pc, [cos, k * x, k * y, k * z]))
+
+
+slerp = _derivatives.derivatives_in_one_loop(_slerp, core=(1, 1, 0), out_core=1)
 
 
 def align_signs(keys: Array) -> Array:

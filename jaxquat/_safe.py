@@ -79,13 +79,13 @@ def _sinc_cos_of_sq_parts(s: Array) -> tuple[Array, Array, Array]:
     """``(sinc, cos, d sinc/ds)`` of :func:`sinc_cos_of_sq`."""
     small = s < _TRIG_SWITCH
     s_small = jnp.where(small, s, 0.0)
-    x = jnp.sqrt(jnp.where(small, _TRIG_SWITCH, s))
+    x = _trig.sqrt(jnp.where(small, _TRIG_SWITCH, s))
     sin, cos = _trig.sincos(x)
-    sinc_direct = sin / x
+    sinc_direct = _trig.divide(sin, x)
     sinc, cos = _arrays.scalars(
         jnp.where(small, _horner(s_small, _SINC), sinc_direct), jnp.where(small, _horner(s_small, _COS), cos)
     )
-    d_sinc = jnp.where(small, _horner(s_small, _SINC_DERIVATIVE), (cos - sinc_direct) / (2.0 * x * x))
+    d_sinc = jnp.where(small, _horner(s_small, _SINC_DERIVATIVE), _trig.divide(cos - sinc_direct, 2.0 * x * x))
     return sinc, cos, d_sinc
 
 
@@ -158,22 +158,22 @@ def _atan2_over_n_parts(nsq: Array, w: Array) -> tuple[Array, Array, Array]:
     """``(f, df/dnsq, df/dw)`` of :func:`atan2_over_n`."""
     small = (w > 0) & (nsq < _ATAN_SWITCH * w * w)
     w_safe = jnp.where(small, w, 1.0)
-    x2 = jnp.where(small, nsq / (w_safe * w_safe), 0.0)
-    taylor = _horner(x2, _ATAN) / w_safe
+    x2 = jnp.where(small, _trig.divide(nsq, w_safe * w_safe), 0.0)
+    taylor = _trig.divide(_horner(x2, _ATAN), w_safe)
     # d/dnsq of (1/w) sum_k a_k (nsq/w^2)^k, on its own, wider interval
     small_n = (w > 0) & (nsq < _ATAN_DERIVATIVE_SWITCH * w * w)
     w_n = jnp.where(small_n, w, 1.0)
-    inv = 1.0 / w_n
+    inv = _trig.divide(1.0, w_n)
     x2_n = jnp.where(small_n, nsq * (inv * inv), 0.0)
     taylor_n = _horner(x2_n, _ATAN_DERIVATIVE[64 if nsq.dtype == jnp.float64 else 32]) * (inv * inv * inv)
     degenerate = small | (nsq <= 0)
     nsq_safe = jnp.where(degenerate, 1.0, nsq)
-    n_safe = jnp.sqrt(nsq_safe)
-    f = jnp.where(small, taylor, _trig.atan2(n_safe, w) / n_safe)
+    n_safe = _trig.sqrt(nsq_safe)
+    f = jnp.where(small, taylor, _trig.divide(_trig.atan2(n_safe, w), n_safe))
     rsq = nsq + w * w
-    r = 1.0 / jnp.where(rsq > 0, rsq, 1.0)
+    r = _trig.divide(1.0, jnp.where(rsq > 0, rsq, 1.0))
     nsq_n = jnp.where(small_n | (nsq <= 0), 1.0, nsq)
-    f_n = jnp.where(small_n, taylor_n, (w * r - f) / (2.0 * nsq_n))
+    f_n = jnp.where(small_n, taylor_n, _trig.divide(w * r - f, 2.0 * nsq_n))
     f, f_n, f_w = _arrays.scalars(f, f_n, -r)
     return f, f_n, f_w
 
@@ -196,7 +196,7 @@ def safe_sqrt(s: Array) -> Array:
     Only an exact zero is special-cased: a NaN ``s`` gives NaN (a NaN input must never
     come out as a plausible 0)."""
     zero = s == 0
-    return jnp.where(zero, 0.0, jnp.sqrt(jnp.where(zero, 1.0, s)))
+    return jnp.where(zero, 0.0, _trig.sqrt(jnp.where(zero, 1.0, s)))
 
 
 def safe_norm(x: Array, axis: int = -1) -> Array:

@@ -33,9 +33,19 @@ time). Either choice gives correct values anywhere: it only decides which fast p
 Derivatives are defined by ``custom_jvp`` from the exact identities
 ``sin' = cos``, ``cos' = -sin`` and ``d atan2(y, x) = (x dy - y dx) / (x^2 + y^2)``,
 so gradients are as accurate as the values.
+
+Kernel mode (:func:`kernel_mode`, :func:`in_kernel`): while :mod:`jaxquat._derivatives` traces
+an op's derivative kernel, :func:`divide` and :func:`sqrt` (and ``atan2``, which divides) use
+:func:`reciprocal` and :func:`rsqrt`, built from multiplies: XLA's CPU fusion counts a floating
+divide or square root as expensive and never duplicates one, so each one with two users became
+an array of its own, written and read back, and the kernel several loops instead of one
+(measured there). Outside kernel mode they are ``/`` and ``jnp.sqrt``.
 """
 
 from __future__ import annotations
+
+import contextlib
+import contextvars
 
 import jax
 import jax.numpy as jnp
@@ -97,6 +107,93 @@ def _is64(x: Array) -> bool:
     return jnp.dtype(x.dtype) == jnp.float64
 
 
+_KERNEL = contextvars.ContextVar("jaxquat_kernel_mode", default=False)
+
+
+@contextlib.contextmanager
+def kernel_mode():
+    """Trace in kernel mode (see the module's docstring) inside the ``with`` block."""
+    token = _KERNEL.set(True)
+    try:
+        yield
+    finally:
+        _KERNEL.reset(token)
+
+
+def in_kernel() -> bool:
+    """Whether a derivative kernel is being traced (:func:`kernel_mode`)."""
+    return _KERNEL.get()
+
+
+# Bit-pattern first guesses: 1/a from (MAGIC - bits(a)), 1/sqrt(a) from (MAGIC - bits(a) / 2), each
+# within 12.5 % and 0.2 %; Newton's iterations square the relative error (1/a) or about that (1/sqrt(a)).
+_RECIPROCAL = {32: (0x7EF311C3, 4), 64: (0x7FDE623822FC16E6, 5)}
+_RSQRT = {32: (0x5F375A86, 3), 64: (0x5FE6EB50C7B537A9, 4)}
+
+
+def _guess(a: Array, magic: int, shift: int) -> Array:
+    itype = jnp.int64 if _is64(a) else jnp.int32
+    bits = jax.lax.bitcast_convert_type(a, itype)
+    return jax.lax.bitcast_convert_type(jnp.asarray(magic, itype) - (bits >> shift), a.dtype)
+
+
+@jax.custom_jvp
+def reciprocal(y: Array) -> Array:
+    """``1 / y`` from multiplies only: a bit-pattern guess, then Newton's ``r + r (1 - |y| r)``
+    (the residual first, so a power of two comes out exact, where ``r (2 - |y| r)`` stalls an ulp
+    short). Within 0.5 ulp of ``1 / y`` for ``2^-126 <= |y| < 2^125`` (float32; ``2^-1022`` and
+    ``2^1021`` in float64; ``tests/test_trig.py``); beyond (where the guess's exponent leaves the
+    normal range) and at zero, a finite but wrong number; NaN gives NaN. float16 and bfloat16 go through
+    float32."""
+    if jnp.finfo(y.dtype).bits < 32:  # float16, bfloat16: in float32
+        return reciprocal(y.astype(jnp.float32)).astype(y.dtype)
+    a = jnp.abs(y)
+    magic, steps = _RECIPROCAL[64 if _is64(y) else 32]
+    r = _guess(a, magic, 0)
+    for _ in range(steps):
+        r = r + r * (1.0 - a * r)
+    return jnp.where(jnp.signbit(y), -r, r)
+
+
+@reciprocal.defjvp
+def _reciprocal_jvp(primals, tangents):
+    (y,), (dy,) = primals, tangents
+    r = reciprocal(y)
+    return r, -r * r * dy
+
+
+@jax.custom_jvp
+def rsqrt(x: Array) -> Array:
+    """``1 / sqrt(x)`` from multiplies only: a bit-pattern guess, then Newton's
+    ``r + r (1 - x r^2) / 2``. Within 1 ulp for normal ``x > 0`` (``tests/test_trig.py``); at
+    zero a large finite number (so ``x * rsqrt(x)`` is 0); NaN gives NaN. float16 and bfloat16
+    go through float32."""
+    if jnp.finfo(x.dtype).bits < 32:  # float16, bfloat16: in float32
+        return rsqrt(x.astype(jnp.float32)).astype(x.dtype)
+    magic, steps = _RSQRT[64 if _is64(x) else 32]
+    r = _guess(x, magic, 1)
+    for _ in range(steps):
+        r = r + 0.5 * r * (1.0 - x * r * r)
+    return r
+
+
+@rsqrt.defjvp
+def _rsqrt_jvp(primals, tangents):
+    (x,), (dx,) = primals, tangents
+    r = rsqrt(x)
+    return r, -0.5 * r * r * r * dx
+
+
+def divide(a, b):
+    """``a / b``; in kernel mode ``a * reciprocal(b)`` (callers keep ``b`` finite and non-zero)."""
+    return a * reciprocal(b) if in_kernel() else a / b
+
+
+def sqrt(x: Array) -> Array:
+    """``sqrt(x)``; in kernel mode ``x * rsqrt(x)`` (callers keep ``x`` finite and ``>= 0``; 0 gives 0)."""
+    return x * rsqrt(x) if in_kernel() else jnp.sqrt(x)
+
+
 def _sincos_value(x: Array):
     wide = _is64(x)
     p1, p2, p3 = _PIO2_64 if wide else _PIO2_32
@@ -149,10 +246,10 @@ def _atan_unit(a: Array) -> Array:
     wide = _is64(a)
     split = 0.66 if wide else 0.41421356237309503
     big = a > split
-    t = jnp.where(big, (a - 1.0) / (a + 1.0), a)
+    t = jnp.where(big, divide(a - 1.0, a + 1.0), a)
     z = t * t
     if wide:
-        kernel = t + t * z * (_poly(z, _ATAN_P) / _poly(z, _ATAN_Q))
+        kernel = t + t * z * divide(_poly(z, _ATAN_P), _poly(z, _ATAN_Q))
         # pi/4 as a double plus the part of it a double cannot hold
         return jnp.where(big, (0.7853981633974483 + kernel) + 3.061616997868383e-17, kernel)
     kernel = t + t * z * _poly(z, _ATAN32)
@@ -171,7 +268,7 @@ def _atan2_value(y: Array, x: Array) -> Array:
     swap = ay > ax
     num = jnp.where(swap, ax, ay)
     den = jnp.where(swap, ay, ax)
-    r = _atan_unit(num / jnp.where(den == 0, 1.0, den))
+    r = _atan_unit(divide(num, jnp.where(den == 0, 1.0, den)))
     r = jnp.where(swap, (np.pi / 2) - r, r)
     r = jnp.where(jnp.signbit(x), np.pi - r, r)
     return jnp.where(jnp.signbit(y), -r, r)
@@ -180,4 +277,4 @@ def _atan2_value(y: Array, x: Array) -> Array:
 @atan2.defjvp
 def _atan2_jvp(primals, tangents):
     (y, x), (dy, dx) = primals, tangents
-    return atan2(y, x), (x * dy - y * dx) / (x * x + y * y)
+    return atan2(y, x), divide(x * dy - y * dx, x * x + y * y)

@@ -400,7 +400,7 @@ class _ComponentLeaves:
 
     @staticmethod
     def error(q1: tuple, e: tuple) -> Array:
-        return _arrays.assemble(*_quaternion.multiply_components(q1, (None, *(0.5 * x for x in e))))
+        return _arrays.assemble(*cast(list[Array], _quaternion.multiply_components(q1, (None, *(0.5 * x for x in e)))))
 
     @staticmethod
     def rows(c: tuple) -> Array:

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import ArrayLike, Float
 
-from .. import _arrays, _checks, _quaternion, _safe, _trig
+from .. import _arrays, _checks, _derivatives, _quaternion, _safe, _trig
 
 __all__ = ["from_euler", "to_euler"]
 
@@ -150,9 +150,9 @@ def _angles_jvp(seq, primals, tangents):
     )
     da, db, dc, dd = _abcd(plan, *tangents)
     both = (ab > 0) & (cd > 0)
-    u = jnp.where(ab > 0, 1.0 / jnp.where(ab > 0, ab, 1.0), 0.0)
-    v = jnp.where(cd > 0, 1.0 / jnp.where(cd > 0, cd, 1.0), 0.0)
-    scale = 2.0 / jnp.where(both, r_ab * r_cd * (ab + cd), 1.0)
+    u = jnp.where(ab > 0, _trig.divide(1.0, jnp.where(ab > 0, ab, 1.0)), 0.0)
+    v = jnp.where(cd > 0, _trig.divide(1.0, jnp.where(cd > 0, cd, 1.0)), 0.0)
+    scale = _trig.divide(2.0, jnp.where(both, r_ab * r_cd * (ab + cd), 1.0))
     m_ab = jnp.where(both, scale * cd, 0.0)  # 2 r_cd / (r_ab (r_ab^2 + r_cd^2))
     m_cd = jnp.where(both, scale * ab, 0.0)  # 2 r_ab / (r_cd (r_ab^2 + r_cd^2))
     d_half_sum = u * (a * db - b * da)
@@ -188,7 +188,7 @@ def to_euler(q: Float[ArrayLike, "*batch 4"], seq: str) -> Float[Array, "*batch 
     return _arrays.compiled(_to_euler, _checks.quat(q), seq=seq)
 
 
-def _to_euler(q: Array, seq: str) -> Array:
+def _to_euler_kernel(q: Array, seq: str) -> Array:
     # In components (one split, the scale taken on the components, one stack) with a closed-form
     # JVP (_angles): at 10^6 (this 2-core CPU, three fresh processes each, minimum of 9 runs in
     # each) the float32 value took 7.5-7.8 ms against 17.1-19.5 ms (one process in three 16.6 ms:
@@ -196,11 +196,14 @@ def _to_euler(q: Array, seq: str) -> Array:
     # float64 34-39 against 36-38 ms and 42-43 against 45-47 ms (docs/benchmarks.md). A plain
     # split (_arrays.split), since the rule already makes the transpose element-wise: with the
     # products of _arrays.components one jvp took 21 against 5.1 ms (float32).
-    w, x, y, z = _safe.rescaled_components(*_arrays.split(q))
+    w, x, y, z = _safe.rescaled_components(*_arrays.components(q))
     first, middle, third = _angles(seq, w, x, y, z)
     if not _plan(seq).symmetric:
         middle = middle - 0.5 * jnp.pi
     first, middle, third = _arrays.scalars(first, middle, third)
     # (t + pi) mod 2 pi - pi, by floor: jnp.remainder is a scalar fmod call on CPU
     wrap = lambda t: t - (2.0 * jnp.pi) * jnp.floor((t + jnp.pi) / (2.0 * jnp.pi))  # noqa: E731
-    return jnp.stack([wrap(first), middle, wrap(third)], axis=-1)
+    return _arrays.assemble(wrap(first), middle, wrap(third))
+
+
+_to_euler = _derivatives.derivatives_in_one_loop(_to_euler_kernel, core=(1,), out_core=1)

@@ -1,0 +1,227 @@
+"""Element-wise ops whose forward-mode tangent and reverse-mode cotangent each run as one loop over
+the batch on CPU: :func:`derivatives_in_one_loop`.
+
+JAX differentiates an op by its operations: reverse mode stores the forward pass's intermediates
+(each an array over the batch, written and read back) and runs the transposed operations in
+kernels of their own. For the rotation ops on CPU that made a gradient at 10^6 elements 5-30
+times the time of moving its bytes (``docs/benchmarks.md``): ``to_rotvec``'s gradient took 16
+kernels, most of them intermediates of the forward pass with several consumers.
+
+Here an op's tangent ``J(x) dx`` and cotangent ``J(x)^T g`` are two kernels (a primitive,
+``jaxquat_linear_kernel``, linear in its last operands, each the other's transpose), each
+traced from the op itself by ``jax.jvp`` and ``jax.vjp`` and compiled as a whole: from the op's
+inputs, with nothing stored between the forward and the backward pass (reverse mode keeps the
+inputs, which it holds anyway). Three things make XLA compile a kernel into one loop:
+
+- its output's components pass through :func:`jaxquat._fusion.one_loop` (a variadic ``reduce``,
+  always one loop) before they are stacked;
+- it is traced in kernel mode (:func:`jaxquat._trig.kernel_mode`): divisions and square roots
+  come from multiplies (XLA's CPU fusion never duplicates a floating divide or square root, so
+  each one with two users was an array of its own), the scalars' optimisation barriers
+  (:func:`jaxquat._arrays.scalars`) are off, and the ops' component splits and stacks are plain;
+- the op is written on components (:func:`jaxquat._arrays.components`), so the kernel's
+  arithmetic is element-wise.
+
+Measured on ``to_rotvec`` at 10^6 (float32, one core of this 2-core EPYC): its cotangent kernel
+alone 24 ms as JAX traced it (11 loops: every divide and square root with two users and their
+producers written out), 5.3 ms in one loop; the figures of each op are in its docstring and in
+``docs/benchmarks.md``. On other platforms than CPU the op keeps JAX's own derivatives
+(XLA's GPU compiler fuses many outputs itself).
+
+Second derivatives differentiate the kernels themselves (``jax.jvp`` of the tangent kernel), so
+they are exact too, if not fused.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+from jax.interpreters import ad, batching, mlir
+
+from . import _arrays, _fusion, _trig
+
+try:  # jax >= 0.4.36; pyproject allows 0.4.30, where jax.core still held it
+    from jax.extend.core import Primitive
+except ImportError:  # pragma: no cover
+    from jax.core import Primitive  # pyright: ignore[reportAttributeAccessIssue]
+
+
+def derivatives_in_one_loop(fn: Callable[..., Array], core: Sequence[int], out_core: int) -> Callable[..., Array]:
+    """``fn`` (element-wise over leading batch axes, its arrays' last ``core[i]`` axes their
+    components, its output's last ``out_core``), differentiated on CPU by one-loop kernels.
+
+    Keyword arguments of the result are static (``fn``'s options: flags, strings). Elsewhere than
+    on CPU it is ``fn`` itself."""
+
+    @functools.wraps(fn)
+    def op(*xs: Array, **static) -> Array:
+        if not _trig.on_cpu(lambda: True, lambda: False):
+            return fn(*xs, **static)
+        return _custom(fn, tuple(core), out_core, tuple(sorted(static.items())))(*xs)
+
+    return op
+
+
+@functools.cache
+def _custom(fn, core: tuple[int, ...], out_core: int, static: tuple):
+    f = functools.partial(fn, **dict(static))
+    kernels = _Kernels(f, core, out_core)
+
+    @jax.custom_jvp
+    def op(*xs):
+        return kernels.value(xs)
+
+    @op.defjvp
+    def _jvp(primals, tangents):
+        bind = functools.partial(_linear_p.bind, fn=kernels.tangent, transpose=kernels.cotangent, n=len(primals))
+        (tangent,) = bind(*primals, *tangents)
+        return op(*primals), tangent
+
+    return op
+
+
+class _Kernels:
+    """The tangent and cotangent kernels of one op (hashable by identity: primitive parameters).
+
+    Both differentiate the op with respect to its inputs' components (:func:`_parts`), stacked by
+    :func:`jaxquat._arrays.stacked`, so the op's own splits hand them back unchanged."""
+
+    def __init__(self, f, core, out_core):
+        self.f, self.core, self.out_core = f, core, out_core
+
+    def _on_parts(self, *flat):
+        parts, it = [], iter(flat)
+        for k in self.sizes:
+            parts.append([next(it) for _ in range(k)])
+        vectors = [p for p, c in zip(parts, self.core) if c]
+        with _arrays.stacked(vectors, [s for s, c in zip(self.shapes, self.core) if c]) as arrays:
+            it = iter(arrays)
+            return self.f(*(next(it) if c else p[0] for p, c in zip(parts, self.core)))
+
+    def _shapes(self, xs):
+        self.sizes = [_size(x, c) for x, c in zip(xs, self.core)]
+        self.shapes = [_core_shape(x, c) for x, c in zip(xs, self.core)]
+
+    def value(self, xs):
+        self._shapes(xs)
+        with _trig.kernel_mode():
+            out = self._on_parts(*_flat_parts(xs, self.core))
+        return _in_one_loop([out], [self.out_core])[0]
+
+    def tangent(self, xs, dxs):
+        self._shapes(xs)
+        with _trig.kernel_mode():
+            _, t = jax.jvp(self._on_parts, tuple(_flat_parts(xs, self.core)), tuple(_flat_parts(dxs, self.core)))
+        return (_in_one_loop([t], [self.out_core])[0],)
+
+    def cotangent(self, xs, cts):
+        (ct,) = cts
+        batch = jnp.broadcast_shapes(*(jnp.shape(x)[: jnp.ndim(x) - c] for x, c in zip(xs, self.core)))
+        full = [jnp.broadcast_to(x, batch + jnp.shape(x)[jnp.ndim(x) - c :]) for x, c in zip(xs, self.core)]
+        self._shapes(xs)
+        with _trig.kernel_mode():
+            _, vjp = jax.vjp(self._on_parts, *_flat_parts(full, self.core))
+            dparts = vjp(jnp.broadcast_to(ct, batch + jnp.shape(ct)[jnp.ndim(ct) - self.out_core :]))
+        looped = iter(_fusion.one_loop(jnp.broadcast_arrays(*dparts)))
+        out = []
+        for x, c, k in zip(xs, self.core, self.sizes):
+            comps = [next(looped) for _ in range(k)]
+            dx = comps[0] if c == 0 else _arrays.by_products(*comps).reshape(batch + jnp.shape(x)[jnp.ndim(x) - c :])
+            out.append(_unbroadcast(dx, jnp.shape(x)))
+        return tuple(out)
+
+
+def _core_shape(x, c: int) -> tuple[int, ...]:
+    return tuple(jnp.shape(x)[jnp.ndim(x) - c :])
+
+
+def _size(x, c: int) -> int:
+    return math.prod(jnp.shape(x)[jnp.ndim(x) - c :])
+
+
+def _flat_parts(xs, core) -> list[Array]:
+    """Every component of every array, in order (an array of no component axes is its own)."""
+    out = []
+    for x, c in zip(xs, core):
+        flat = jnp.reshape(x, jnp.shape(x)[: jnp.ndim(x) - c] + (_size(x, c),))
+        out += [flat[..., i] for i in range(flat.shape[-1])] if c else [x]
+    return out
+
+
+def _in_one_loop(arrays: list[Array], core: list[int]) -> list[Array]:
+    """``arrays`` unchanged, their components (the last ``core[i]`` axes) computed in one loop."""
+    parts, sizes = [], []
+    for a, c in zip(arrays, core):
+        flat = a.reshape(a.shape[: a.ndim - c] + (math.prod(a.shape[a.ndim - c :]),))
+        sizes.append(flat.shape[-1])
+        parts += [flat[..., i] for i in range(flat.shape[-1])]
+    looped = iter(_fusion.one_loop(jnp.broadcast_arrays(*parts)))
+    out = []
+    for a, c, k in zip(arrays, core, sizes):
+        comps = [next(looped) for _ in range(k)]
+        out.append(comps[0].reshape(a.shape) if c == 0 else _arrays.by_products(*comps).reshape(a.shape))
+    return out
+
+
+def _unbroadcast(x: Array, shape: tuple[int, ...]) -> Array:
+    """``x`` summed over the axes that broadcasting added to ``shape``."""
+    lead = x.ndim - len(shape)
+    axes = tuple(range(lead)) + tuple(lead + i for i, n in enumerate(shape) if n == 1 and x.shape[lead + i] != 1)
+    return jnp.sum(x, axis=axes).reshape(shape) if axes else x
+
+
+_linear_p = Primitive("jaxquat_linear_kernel")
+_linear_p.multiple_results = True
+
+
+def _split(args, n):
+    return args[:n], args[n:]
+
+
+def _abstract(*args, fn, transpose, n):
+    xs, ys = _split([jax.ShapeDtypeStruct(a.shape, a.dtype) for a in args], n)
+    outs = jax.eval_shape(fn, xs, ys)
+    return [args[0].update(shape=o.shape, dtype=o.dtype) for o in outs]
+
+
+def _lower(ctx, *args, fn, transpose, n):
+    return mlir.lower_fun(lambda *a: fn(*_split(a, n)), multiple_results=True)(ctx, *args)
+
+
+def _transpose(cts, *args, fn, transpose, n):
+    xs, ys = _split(args, n)
+    if any(ad.is_undefined_primal(x) for x in xs):
+        raise NotImplementedError("jaxquat_linear_kernel is linear in its last operands only")
+    cts = [ad.instantiate_zeros(c) for c in cts]
+    outs = _linear_p.bind(*xs, *cts, fn=transpose, transpose=fn, n=n)
+    return [None] * n + [o if ad.is_undefined_primal(y) else None for o, y in zip(outs, ys)]
+
+
+def _jvp(primals, tangents, *, fn, transpose, n):
+    """Second derivatives: the kernel differentiated as JAX traces it."""
+    tangents = [ad.instantiate_zeros(t) for t in tangents]
+    outs = _linear_p.bind(*primals, fn=fn, transpose=transpose, n=n)
+    _, touts = jax.jvp(lambda *a: fn(*_split(a, n)), tuple(primals), tuple(tangents))
+    return outs, list(touts)
+
+
+def _batch(args, dims, *, fn, transpose, n):
+    size = next(a.shape[d] for a, d in zip(args, dims) if d is not None)
+    moved = [
+        jnp.moveaxis(a, d, 0) if d is not None else jnp.broadcast_to(a, (size,) + a.shape) for a, d in zip(args, dims)
+    ]
+    outs = _linear_p.bind(*moved, fn=fn, transpose=transpose, n=n)
+    return outs, [0] * len(outs)
+
+
+_linear_p.def_impl(lambda *args, fn, transpose, n: list(fn(*_split(args, n))))
+_linear_p.def_abstract_eval(_abstract)
+mlir.register_lowering(_linear_p, _lower)
+ad.primitive_jvps[_linear_p] = _jvp
+ad.primitive_transposes[_linear_p] = _transpose
+batching.primitive_batchers[_linear_p] = _batch

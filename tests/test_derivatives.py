@@ -1,0 +1,180 @@
+"""The one-loop derivative kernels (``jaxquat._derivatives``) of ``to_rotvec``, ``slerp`` and
+``to_euler``: the tangents, cotangents and second derivatives they give must be JAX's own
+derivatives of the same op (the undecorated kernel, differentiated operation by operation through
+its closed-form scalar rules), at random and singular points, under every transform; and they
+must compile as one loop on CPU and not exist elsewhere."""
+
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+
+from helpers import DTYPE, NP_DTYPE, X64, random_quats, seeds
+from jaxquat import _derivatives, _rotation, _trig
+from jaxquat.rotations import euler_angles
+
+EPS = float(np.finfo(NP_DTYPE).eps)
+# Derivatives of O(1) ops: the kernels round differently (reciprocals by Newton's method, another
+# order of operations), a few hundred ulp at most near the singular rows in float32.
+RTOL = 1e-12 if X64 else 2e-4
+
+
+def _ops():
+    """name -> (decorated op, undecorated kernel, its arguments from a seed)."""
+
+    def quats(seed, n=16):
+        return (jnp.asarray(random_quats(seed, n), DTYPE),)
+
+    def slerp_args(seed, n=16):
+        rng = np.random.default_rng(seed + 1)
+        return (
+            jnp.asarray(random_quats(seed, n), DTYPE),
+            jnp.asarray(random_quats(seed + 7, n, with_singular=False), DTYPE),
+            jnp.asarray(rng.uniform(-0.5, 1.5, n), DTYPE),
+        )
+
+    return {
+        "to_rotvec": (
+            lambda q: _rotation.to_rotvec(q, rescale=True),
+            lambda q: _rotation._to_rotvec(q, rescale=True),
+            quats,
+        ),
+        "slerp": (_rotation.slerp, _rotation._slerp, slerp_args),
+        "to_euler xyz": (
+            lambda q: euler_angles._to_euler(q, seq="xyz"),
+            lambda q: euler_angles._to_euler_kernel(q, seq="xyz"),
+            quats,
+        ),
+        "to_euler ZXZ": (
+            lambda q: euler_angles._to_euler(q, seq="ZXZ"),
+            lambda q: euler_angles._to_euler_kernel(q, seq="ZXZ"),
+            quats,
+        ),
+    }
+
+
+OPS = _ops()
+
+
+def _assert_close(got, want, rtol=RTOL):
+    got, want = np.asarray(got, np.float64), np.asarray(want, np.float64)
+    assert got.shape == want.shape
+    scale = max(1.0, float(np.max(np.abs(want))))
+    assert np.max(np.abs(got - want)) <= rtol * scale, np.max(np.abs(got - want)) / scale
+
+
+def _cotangent(f, args, seed):
+    out = jax.eval_shape(f, *args)
+    return jnp.asarray(np.random.default_rng(seed).normal(size=out.shape), DTYPE)
+
+
+@pytest.mark.parametrize("name", list(OPS))
+@settings(max_examples=5, deadline=None)
+@given(seed=seeds)
+def test_kernels_give_jax_s_own_derivatives(name, seed):
+    """Values, one ``jvp``, the gradient of ``sum(f * W)`` with respect to every input, at random
+    rows and (``random_quats``) the identity, half turns and tiny angles."""
+    op, plain, make = OPS[name]
+    args = make(seed % 1000)
+    w = _cotangent(op, args, seed)
+    tangents = tuple(jnp.asarray(np.random.default_rng(seed + 2).normal(size=a.shape), DTYPE) for a in args)
+    value, want = jax.jit(op)(*args), plain(*args)
+    if name.startswith("to_euler"):  # an angle at -pi and at pi is the same (rounding picks one)
+        value = want + np.angle(np.exp(1j * (np.asarray(value, np.float64) - np.asarray(want, np.float64))))
+    _assert_close(value, want, rtol=64 * EPS)
+    for argnums in range(len(args)):
+        got = jax.jit(jax.grad(lambda *a: jnp.sum(op(*a) * w), argnums))(*args)
+        _assert_close(got, jax.grad(lambda *a: jnp.sum(plain(*a) * w), argnums)(*args))
+    _assert_close(jax.jit(lambda *a: jax.jvp(op, a, tangents)[1])(*args), jax.jvp(plain, args, tangents)[1])
+
+
+@pytest.mark.skipif(not X64, reason="second derivatives compared in float64")
+@pytest.mark.parametrize("name", list(OPS))
+def test_kernels_second_derivatives_and_transforms(name):
+    """``jacfwd`` (the primal unmapped under ``vmap``), ``jacrev``, the Hessian of one output, a
+    ``vmap`` over a non-leading axis, ``linearize`` and a rematerialised gradient."""
+    op, plain, make = OPS[name]
+    args = make(3, n=4)
+    one = tuple(a[1] for a in args)
+    _assert_close(jax.jacfwd(op)(*one), jax.jacfwd(plain)(*one))
+    _assert_close(jax.jacrev(op)(*one), jax.jacfwd(plain)(*one))
+    hessian = jax.hessian(lambda x: op(x, *one[1:])[0])(one[0])
+    _assert_close(hessian, jax.hessian(lambda x: plain(x, *one[1:])[0])(one[0]))
+    stacked = tuple(jnp.stack([a, a[::-1]], axis=1) for a in args)  # (4, 2, ...): vmap over axis 1
+    grad = jax.vmap(jax.grad(lambda *a: jnp.sum(op(*a) ** 2)), in_axes=1, out_axes=1)(*stacked)
+    want = jax.vmap(jax.grad(lambda *a: jnp.sum(plain(*a) ** 2)), in_axes=1, out_axes=1)(*stacked)
+    _assert_close(grad, want)
+    y, lin = jax.linearize(op, *args)
+    _assert_close(lin(*args), jax.jvp(plain, args, args)[1])
+    remat = jax.grad(jax.checkpoint(lambda *a: jnp.sum(op(*a) ** 2)))(*args)
+    _assert_close(remat, jax.grad(lambda *a: jnp.sum(plain(*a) ** 2))(*args))
+
+
+def test_slerp_cotangents_sum_over_broadcast_inputs():
+    """``slerp(p, q, t)`` with one ``q`` and one ``t`` for a batch of ``p``: their cotangents are
+    summed over the batch, as JAX's own."""
+    p = jnp.asarray(random_quats(5, 6), DTYPE)
+    q = jnp.asarray(random_quats(6, 1, with_singular=False)[0], DTYPE)
+    t = jnp.asarray(0.3, DTYPE)
+    w = jnp.asarray(np.random.default_rng(0).normal(size=(6, 4)), DTYPE)
+    for argnums in (0, 1, 2):
+        got = jax.grad(lambda *a: jnp.sum(_rotation.slerp(*a) * w), argnums)(p, q, t)
+        want = jax.grad(lambda *a: jnp.sum(_rotation._slerp(*a) * w), argnums)(p, q, t)
+        assert got.shape == (p, q, t)[argnums].shape
+        _assert_close(got, want)
+
+
+@pytest.mark.skipif(not X64, reason="a lowering test: its verdict does not depend on the dtype")
+@pytest.mark.parametrize("cpu", [True, False], ids=["cpu", "other"])
+def test_gradient_is_one_linear_kernel_on_cpu_only(cpu, monkeypatch):
+    """On CPU the gradient of ``to_rotvec`` is one ``jaxquat_linear_kernel``, compiled into one
+    variadic ``reduce`` (the one loop) and no division or square root (XLA never fuses a division
+    with two users); elsewhere (the backend test patched) the op is its kernel, whose gradient
+    JAX forms (no such primitive)."""
+    monkeypatch.setattr(_trig, "_cpu", lambda: cpu)
+    q = jnp.asarray(random_quats(1, 8), DTYPE)
+    w = jnp.asarray(np.random.default_rng(0).normal(size=(8, 3)), DTYPE)
+
+    def grad(q):  # a fresh function: jit's trace cache is keyed by the function
+        return jax.grad(lambda q: jnp.sum(_rotation.to_rotvec(q, rescale=True) * w))(q)
+
+    jaxpr = str(jax.make_jaxpr(grad)(q))
+    assert ("jaxquat_linear_kernel" in jaxpr) == cpu
+    if cpu:
+        hlo = jax.jit(grad).lower(q).compile().as_text()
+        reduces = [line for line in hlo.splitlines() if " reduce(" in line]
+        assert len(reduces) == 1 and reduces[0].split(" reduce(")[0].count("f64[8]") == 4  # four results
+        assert not re.search(r" (divide|sqrt|rsqrt)\(", hlo)
+
+
+def test_kernel_mode_values_are_the_values():
+    """Traced in kernel mode (Newton's reciprocals, no barriers, plain splits) each op gives its
+    value to a few ulp, and outside the mode ``divide`` and ``sqrt`` are ``/`` and ``jnp.sqrt``."""
+    for name, (_, plain, make) in OPS.items():
+        args = make(11)
+        with _trig.kernel_mode():
+            inside = np.asarray(plain(*args), np.float64)
+        want = np.asarray(plain(*args), np.float64)
+        if name.startswith("to_euler"):  # -pi and pi
+            inside = want + np.angle(np.exp(1j * (inside - want)))
+        _assert_close(inside, want, rtol=64 * EPS)
+    x = jnp.asarray(np.random.default_rng(3).uniform(0.1, 10.0, 64), DTYPE)
+    np.testing.assert_array_equal(_trig.divide(1.0, x), 1.0 / x)
+    np.testing.assert_array_equal(_trig.sqrt(x), jnp.sqrt(x))
+    assert not _trig.in_kernel()
+
+
+def test_linear_kernel_refuses_a_nonlinear_transpose():
+    """The primitive is linear in its last operands only: transposing it with respect to the
+    point it is linearised at is an error, not a silent wrong answer."""
+    kernels = _derivatives._Kernels(lambda q: _rotation._to_rotvec(q), (1,), 1)
+    q = jnp.asarray(random_quats(2, 3), DTYPE)
+
+    def f(x, dx):
+        return _derivatives._linear_p.bind(x, dx, fn=kernels.tangent, transpose=kernels.cotangent, n=1)[0]
+
+    with pytest.raises(NotImplementedError, match="linear in its last operands"):
+        jax.linear_transpose(lambda x: f(x, q), q)(jnp.ones((3, 3), DTYPE))
