@@ -51,30 +51,33 @@ except ImportError:  # pragma: no cover
     from jax.core import Primitive  # pyright: ignore[reportAttributeAccessIssue]
 
 
-def derivatives_in_one_loop(fn: Callable[..., Array], core: Sequence[int], out_core: int) -> Callable[..., Array]:
+def derivatives_in_one_loop(
+    fn: Callable[..., Array], core: Sequence[int], out_core: int, value_in_one_loop: bool = True
+) -> Callable[..., Array]:
     """``fn`` (element-wise over leading batch axes, its arrays' last ``core[i]`` axes their
     components, its output's last ``out_core``), differentiated on CPU by one-loop kernels.
 
-    Keyword arguments of the result are static (``fn``'s options: flags, strings). Elsewhere than
-    on CPU it is ``fn`` itself."""
+    With ``value_in_one_loop`` the value is a kernel too (traced in kernel mode, its components
+    computed in one loop before the stack), else ``fn``'s own. Keyword arguments of the result
+    are static (``fn``'s options: flags, strings). Elsewhere than on CPU it is ``fn`` itself."""
 
     @functools.wraps(fn)
     def op(*xs: Array, **static) -> Array:
         if not _trig.on_cpu(lambda: True, lambda: False):
             return fn(*xs, **static)
-        return _custom(fn, tuple(core), out_core, tuple(sorted(static.items())))(*xs)
+        return _custom(fn, tuple(core), out_core, value_in_one_loop, tuple(sorted(static.items())))(*xs)
 
     return op
 
 
 @functools.cache
-def _custom(fn, core: tuple[int, ...], out_core: int, static: tuple):
+def _custom(fn, core: tuple[int, ...], out_core: int, value_in_one_loop: bool, static: tuple):
     f = functools.partial(fn, **dict(static))
     kernels = _Kernels(f, core, out_core)
 
     @jax.custom_jvp
     def op(*xs):
-        return kernels.value(xs)
+        return kernels.value(xs) if value_in_one_loop else f(*xs)
 
     @op.defjvp
     def _jvp(primals, tangents):

@@ -173,7 +173,7 @@ def _to_rotvec(q: Array, rescale: bool = False) -> Array:
     return _arrays.assemble(f2 * x, f2 * y, f2 * z)
 
 
-to_rotvec = _derivatives.derivatives_in_one_loop(_to_rotvec, core=(1,), out_core=1)
+to_rotvec = _derivatives.derivatives_in_one_loop(_to_rotvec, core=(1,), out_core=1, value_in_one_loop=False)
 
 
 def from_rotvec(r: Array) -> Array:
