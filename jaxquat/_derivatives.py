@@ -22,11 +22,16 @@ inputs, which it holds anyway). Three things make XLA compile a kernel into one 
 - the op is written on components (:func:`jaxquat._arrays.components`), so the kernel's
   arithmetic is element-wise.
 
-Measured on ``to_rotvec`` at 10^6 (float32, one core of this 2-core EPYC): its cotangent kernel
-alone 24 ms as JAX traced it (11 loops: every divide and square root with two users and their
-producers written out), 5.3 ms in one loop; the figures of each op are in its docstring and in
-``docs/benchmarks.md``. On other platforms than CPU the op keeps JAX's own derivatives
-(XLA's GPU compiler fuses many outputs itself).
+Measured at 10^6 (float32, one core of this 2-core EPYC): ``to_rotvec``'s cotangent kernel alone
+took 24 ms with XLA's divisions and square roots (11 loops: each of them with two users, and their
+producers, written out) and 5.3 ms in kernel mode (one loop and the stack). The gradients of the
+ops that use it: ``to_rotvec`` 26 -> 6.0 ms, ``slerp`` 44 -> 11.8 ms, ``to_euler`` 32 -> 5.3 ms
+(their docstrings have both dtypes and forward mode; ``docs/benchmarks.md`` the tables). Tried
+and not kept: ``from_rotvec`` (value 2.0 -> 8.3 ms, gradient 2.3 -> 3.2 ms) and ``from_euler``
+(value 2.3 -> 2.9 ms, gradient 2.0 -> 2.2 ms), already within 3x of moving their bytes;
+``from_matrix`` (gradient 45 -> 59 ms: XLA wrote the input's nine entries out as arrays of their
+own, though one ``jvp`` went 39 -> 8.5 ms). On other platforms than CPU the ops keep JAX's own
+derivatives (XLA's GPU compiler fuses many outputs itself).
 
 Second derivatives differentiate the kernels themselves (``jax.jvp`` of the tangent kernel), so
 they are exact too, if not fused.

@@ -178,3 +178,24 @@ def test_linear_kernel_refuses_a_nonlinear_transpose():
 
     with pytest.raises(NotImplementedError, match="linear in its last operands"):
         jax.linear_transpose(lambda x: f(x, q), q)(jnp.ones((3, 3), DTYPE))
+
+
+def test_matrix_inputs_and_scalar_outputs():
+    """The kernels of an op of ``(..., 3, 3)`` matrices (Shepperd's column, decorated here) and
+    of one with a scalar output (the first component of ``to_rotvec``) give JAX's derivatives."""
+    from jaxquat import _derivatives as d
+
+    m = jax.vmap(jax.jit(lambda q: _rotation.to_matrix(q)))(jnp.asarray(random_quats(4, 6), DTYPE))
+    m = m + 0.01 * jnp.asarray(np.random.default_rng(1).normal(size=m.shape), DTYPE)  # off SO(3) too
+    shepperd = d.derivatives_in_one_loop(_rotation.from_matrix_shepperd, core=(2,), out_core=1)
+    w = jnp.asarray(np.random.default_rng(2).normal(size=(6, 4)), DTYPE)
+    _assert_close(shepperd(m), _rotation.from_matrix_shepperd(m), rtol=64 * EPS)
+    got = jax.grad(lambda m: jnp.sum(shepperd(m) * w))(m)
+    _assert_close(got, jax.grad(lambda m: jnp.sum(_rotation.from_matrix_shepperd(m) * w))(m))
+    _assert_close(jax.jvp(shepperd, (m,), (m,))[1], jax.jvp(_rotation.from_matrix_shepperd, (m,), (m,))[1])
+    first = d.derivatives_in_one_loop(lambda q: _rotation._to_rotvec(q)[..., 0], core=(1,), out_core=0)
+    q = jnp.asarray(random_quats(8, 5), DTYPE)
+    _assert_close(
+        jax.grad(lambda q: jnp.sum(first(q) ** 2))(q),
+        jax.grad(lambda q: jnp.sum(_rotation._to_rotvec(q)[..., 0] ** 2))(q),
+    )

@@ -190,12 +190,12 @@ def to_euler(q: Float[ArrayLike, "*batch 4"], seq: str) -> Float[Array, "*batch 
 
 def _to_euler_kernel(q: Array, seq: str) -> Array:
     # In components (one split, the scale taken on the components, one stack) with a closed-form
-    # JVP (_angles): at 10^6 (this 2-core CPU, three fresh processes each, minimum of 9 runs in
-    # each) the float32 value took 7.5-7.8 ms against 17.1-19.5 ms (one process in three 16.6 ms:
-    # this machine's slow mode) and the gradient of sum(f(q) * W) 17.0-19.6 against 20.4-23.8 ms;
-    # float64 34-39 against 36-38 ms and 42-43 against 45-47 ms (docs/benchmarks.md). A plain
-    # split (_arrays.split), since the rule already makes the transpose element-wise: with the
-    # products of _arrays.components one jvp took 21 against 5.1 ms (float32).
+    # JVP (_angles), which replaced a row form (docs/benchmarks.md). _to_euler is this kernel with
+    # its value, tangent and cotangent as one-loop kernels on CPU (_derivatives; elsewhere JAX
+    # differentiates it through _angles' rule). At 10^6 (one core of this 2-core EPYC, least of 9
+    # runs, three processes each, float32 / float64): value 5.6 / 25-26 against 13-15 / 62-67 ms,
+    # gradient of sum(f(q)) 5.3 / 15-25 against 32-33 / 67-84 ms, one jvp 4.6 / 20-22 against
+    # 7.6-8.9 / 34-36 ms.
     w, x, y, z = _safe.rescaled_components(*_arrays.components(q))
     first, middle, third = _angles(seq, w, x, y, z)
     if not _plan(seq).symmetric:
