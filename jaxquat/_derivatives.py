@@ -94,52 +94,48 @@ def _custom(fn, core: tuple[int, ...], out_core: int, value_in_one_loop: bool, s
 
 
 class _Kernels:
-    """The tangent and cotangent kernels of one op (hashable by identity: primitive parameters).
-
-    Both differentiate the op with respect to its inputs' components (:func:`_parts`), stacked by
+    """The value, tangent and cotangent kernels of one op (hashable by identity: primitive
+    parameters). Each traces the op on its inputs' components (:func:`_flat_parts`), stacked by
     :func:`jaxquat._arrays.stacked`, so the op's own splits hand them back unchanged."""
 
     def __init__(self, f, core, out_core):
         self.f, self.core, self.out_core = f, core, out_core
 
-    def _on_parts(self, *flat):
+    def _on_parts(self, shapes, *flat):
+        """``f`` of the arrays whose components are ``flat`` (core shapes ``shapes``)."""
         parts, it = [], iter(flat)
-        for k in self.sizes:
-            parts.append([next(it) for _ in range(k)])
+        for shape in shapes:
+            parts.append([next(it) for _ in range(math.prod(shape))])
         vectors = [p for p, c in zip(parts, self.core) if c]
-        with _arrays.stacked(vectors, [s for s, c in zip(self.shapes, self.core) if c]) as arrays:
+        with _arrays.stacked(vectors, [s for s, c in zip(shapes, self.core) if c]) as arrays:
             it = iter(arrays)
             return self.f(*(next(it) if c else p[0] for p, c in zip(parts, self.core)))
 
-    def _shapes(self, xs):
-        self.sizes = [_size(x, c) for x, c in zip(xs, self.core)]
-        self.shapes = [_core_shape(x, c) for x, c in zip(xs, self.core)]
+    def _traced(self, xs):
+        return functools.partial(self._on_parts, [_core_shape(x, c) for x, c in zip(xs, self.core)])
 
     def value(self, xs):
-        self._shapes(xs)
         with _trig.kernel_mode():
-            out = self._on_parts(*_flat_parts(xs, self.core))
+            out = self._traced(xs)(*_flat_parts(xs, self.core))
         return _in_one_loop([out], [self.out_core])[0]
 
     def tangent(self, xs, dxs):
-        self._shapes(xs)
         with _trig.kernel_mode():
-            _, t = jax.jvp(self._on_parts, tuple(_flat_parts(xs, self.core)), tuple(_flat_parts(dxs, self.core)))
+            _, t = jax.jvp(self._traced(xs), tuple(_flat_parts(xs, self.core)), tuple(_flat_parts(dxs, self.core)))
         return (_in_one_loop([t], [self.out_core])[0],)
 
     def cotangent(self, xs, cts):
         (ct,) = cts
         batch = jnp.broadcast_shapes(*(jnp.shape(x)[: jnp.ndim(x) - c] for x, c in zip(xs, self.core)))
-        full = [jnp.broadcast_to(x, batch + jnp.shape(x)[jnp.ndim(x) - c :]) for x, c in zip(xs, self.core)]
-        self._shapes(xs)
+        full = [jnp.broadcast_to(x, batch + _core_shape(x, c)) for x, c in zip(xs, self.core)]
         with _trig.kernel_mode():
-            _, vjp = jax.vjp(self._on_parts, *_flat_parts(full, self.core))
-            dparts = vjp(jnp.broadcast_to(ct, batch + jnp.shape(ct)[jnp.ndim(ct) - self.out_core :]))
+            _, vjp = jax.vjp(self._traced(xs), *_flat_parts(full, self.core))
+            dparts = vjp(jnp.broadcast_to(ct, batch + _core_shape(ct, self.out_core)))
         looped = iter(_fusion.one_loop(jnp.broadcast_arrays(*dparts)))
         out = []
-        for x, c, k in zip(xs, self.core, self.sizes):
-            comps = [next(looped) for _ in range(k)]
-            dx = comps[0] if c == 0 else _arrays.by_products(*comps).reshape(batch + jnp.shape(x)[jnp.ndim(x) - c :])
+        for x, c in zip(xs, self.core):
+            comps = [next(looped) for _ in range(_size(x, c))]
+            dx = comps[0] if c == 0 else _arrays.by_products(*comps).reshape(batch + _core_shape(x, c))
             out.append(_unbroadcast(dx, jnp.shape(x)))
         return tuple(out)
 
