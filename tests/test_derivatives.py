@@ -4,6 +4,7 @@ derivatives of the same op (the undecorated kernel, differentiated operation by 
 its closed-form scalar rules), at random and singular points, under every transform; and they
 must compile as one loop on CPU and not exist elsewhere."""
 
+import functools
 import re
 
 import jax
@@ -71,46 +72,68 @@ def _cotangent(f, args, seed):
     return jnp.asarray(np.random.default_rng(seed).normal(size=out.shape), DTYPE)
 
 
+@functools.cache
+def _first_order(name: str, which: str):
+    """``(value, gradients of sum(f * w) in every input, one jvp)`` of the decorated op or the
+    plain kernel, compiled once per op and dtype (hypothesis' examples reuse it)."""
+    op, plain, _ = OPS[name]
+    f = op if which == "op" else plain
+
+    def run(args, w, tangents):
+        grads = jax.grad(lambda a: jnp.sum(f(*a) * w))(args)
+        return f(*args), grads, jax.jvp(f, args, tangents)[1]
+
+    return jax.jit(run)
+
+
 @pytest.mark.parametrize("name", list(OPS))
 @settings(max_examples=5, deadline=None)
 @given(seed=seeds)
 def test_kernels_give_jax_s_own_derivatives(name, seed):
     """Values, one ``jvp``, the gradient of ``sum(f * W)`` with respect to every input, at random
     rows and (``random_quats``) the identity, half turns and tiny angles."""
-    op, plain, make = OPS[name]
+    op, _, make = OPS[name]
     args = make(seed % 1000)
     w = _cotangent(op, args, seed)
     tangents = tuple(jnp.asarray(np.random.default_rng(seed + 2).normal(size=a.shape), DTYPE) for a in args)
-    value, want = jax.jit(op)(*args), plain(*args)
+    value, grads, jvp = _first_order(name, "op")(args, w, tangents)
+    want, want_grads, want_jvp = _first_order(name, "plain")(args, w, tangents)
     if name.startswith("to_euler"):  # an angle at -pi and at pi is the same (rounding picks one)
         value = want + np.angle(np.exp(1j * (np.asarray(value, np.float64) - np.asarray(want, np.float64))))
     _assert_close(value, want, rtol=64 * EPS)
-    for argnums in range(len(args)):
-        got = jax.jit(jax.grad(lambda *a: jnp.sum(op(*a) * w), argnums))(*args)
-        _assert_close(got, jax.grad(lambda *a: jnp.sum(plain(*a) * w), argnums)(*args))
-    _assert_close(jax.jit(lambda *a: jax.jvp(op, a, tangents)[1])(*args), jax.jvp(plain, args, tangents)[1])
+    for got, expected in zip(grads, want_grads):
+        _assert_close(got, expected)
+    _assert_close(jvp, want_jvp)
+
+
+def _transforms(f, args):
+    """``jacfwd`` and ``jacrev`` at one row, the Hessian of one output there, a ``vmap`` of a
+    gradient over axis 1, ``linearize`` and a rematerialised gradient (``f``'s, or JAX's own
+    derivatives for the reference where ``jacrev`` is ``jacfwd``)."""
+    one = tuple(a[1] for a in args)
+    stacked = tuple(jnp.stack([a, a[::-1]], axis=1) for a in args)  # (4, 2, ...): vmap over axis 1
+    return (
+        jax.jacfwd(f)(*one),
+        jax.jacrev(f)(*one),
+        jax.hessian(lambda x: f(x, *one[1:])[0])(one[0]),
+        jax.vmap(jax.grad(lambda *a: jnp.sum(f(*a) ** 2)), in_axes=1, out_axes=1)(*stacked),
+        jax.linearize(f, *args)[1](*args),
+        jax.grad(jax.checkpoint(lambda *a: jnp.sum(f(*a) ** 2)))(*args),
+    )
 
 
 @pytest.mark.skipif(not X64, reason="second derivatives compared in float64")
 @pytest.mark.parametrize("name", list(OPS))
 def test_kernels_second_derivatives_and_transforms(name):
     """``jacfwd`` (the primal unmapped under ``vmap``), ``jacrev``, the Hessian of one output, a
-    ``vmap`` over a non-leading axis, ``linearize`` and a rematerialised gradient."""
+    ``vmap`` over a non-leading axis, ``linearize`` and a rematerialised gradient, each compiled
+    in one program per op."""
     op, plain, make = OPS[name]
     args = make(3, n=4)
-    one = tuple(a[1] for a in args)
-    _assert_close(jax.jacfwd(op)(*one), jax.jacfwd(plain)(*one))
-    _assert_close(jax.jacrev(op)(*one), jax.jacfwd(plain)(*one))
-    hessian = jax.hessian(lambda x: op(x, *one[1:])[0])(one[0])
-    _assert_close(hessian, jax.hessian(lambda x: plain(x, *one[1:])[0])(one[0]))
-    stacked = tuple(jnp.stack([a, a[::-1]], axis=1) for a in args)  # (4, 2, ...): vmap over axis 1
-    grad = jax.vmap(jax.grad(lambda *a: jnp.sum(op(*a) ** 2)), in_axes=1, out_axes=1)(*stacked)
-    want = jax.vmap(jax.grad(lambda *a: jnp.sum(plain(*a) ** 2)), in_axes=1, out_axes=1)(*stacked)
-    _assert_close(grad, want)
-    y, lin = jax.linearize(op, *args)
-    _assert_close(lin(*args), jax.jvp(plain, args, args)[1])
-    remat = jax.grad(jax.checkpoint(lambda *a: jnp.sum(op(*a) ** 2)))(*args)
-    _assert_close(remat, jax.grad(lambda *a: jnp.sum(plain(*a) ** 2))(*args))
+    got = jax.jit(lambda a: _transforms(op, a))(args)
+    want = jax.jit(lambda a: _transforms(plain, a))(args)
+    for g, w in zip(got, want):
+        _assert_close(g, w)
 
 
 def test_slerp_cotangents_sum_over_broadcast_inputs():
@@ -120,11 +143,11 @@ def test_slerp_cotangents_sum_over_broadcast_inputs():
     q = jnp.asarray(random_quats(6, 1, with_singular=False)[0], DTYPE)
     t = jnp.asarray(0.3, DTYPE)
     w = jnp.asarray(np.random.default_rng(0).normal(size=(6, 4)), DTYPE)
-    for argnums in (0, 1, 2):
-        got = jax.grad(lambda *a: jnp.sum(_rotation.slerp(*a) * w), argnums)(p, q, t)
-        want = jax.grad(lambda *a: jnp.sum(_rotation._slerp(*a) * w), argnums)(p, q, t)
-        assert got.shape == (p, q, t)[argnums].shape
-        _assert_close(got, want)
+    got = jax.jit(jax.grad(lambda *a: jnp.sum(_rotation.slerp(*a) * w), (0, 1, 2)))(p, q, t)
+    want = jax.jit(jax.grad(lambda *a: jnp.sum(_rotation._slerp(*a) * w), (0, 1, 2)))(p, q, t)
+    for g, x, expected in zip(got, (p, q, t), want):
+        assert g.shape == x.shape
+        _assert_close(g, expected)
 
 
 @pytest.mark.skipif(not X64, reason="a lowering test: its verdict does not depend on the dtype")
@@ -189,13 +212,20 @@ def test_matrix_inputs_and_scalar_outputs():
     m = m + 0.01 * jnp.asarray(np.random.default_rng(1).normal(size=m.shape), DTYPE)  # off SO(3) too
     shepperd = d.derivatives_in_one_loop(_rotation.from_matrix_shepperd, core=(2,), out_core=1)
     w = jnp.asarray(np.random.default_rng(2).normal(size=(6, 4)), DTYPE)
-    _assert_close(shepperd(m), _rotation.from_matrix_shepperd(m), rtol=64 * EPS)
-    got = jax.grad(lambda m: jnp.sum(shepperd(m) * w))(m)
-    _assert_close(got, jax.grad(lambda m: jnp.sum(_rotation.from_matrix_shepperd(m) * w))(m))
-    _assert_close(jax.jvp(shepperd, (m,), (m,))[1], jax.jvp(_rotation.from_matrix_shepperd, (m,), (m,))[1])
     first = d.derivatives_in_one_loop(lambda q: _rotation._to_rotvec(q)[..., 0], core=(1,), out_core=0)
     q = jnp.asarray(random_quats(8, 5), DTYPE)
-    _assert_close(
-        jax.grad(lambda q: jnp.sum(first(q) ** 2))(q),
-        jax.grad(lambda q: jnp.sum(_rotation._to_rotvec(q)[..., 0] ** 2))(q),
-    )
+
+    @jax.jit
+    def both(m, q):
+        def each(f, g):
+            return f(m), jax.grad(lambda m: jnp.sum(f(m) * w))(m), jax.jvp(f, (m,), (m,))[1], g(q)
+
+        return (
+            each(shepperd, jax.grad(lambda q: jnp.sum(first(q) ** 2))),
+            each(_rotation.from_matrix_shepperd, jax.grad(lambda q: jnp.sum(_rotation._to_rotvec(q)[..., 0] ** 2))),
+        )
+
+    got, want = both(m, q)
+    _assert_close(got[0], want[0], rtol=64 * EPS)
+    for g, expected in zip(got[1:], want[1:]):
+        _assert_close(g, expected)
