@@ -79,10 +79,10 @@ _STACKED: contextvars.ContextVar[tuple[tuple[Array, list[Array]], ...]] = contex
 def stacked(parts: list[list[Array]], shapes: list[tuple[int, ...]]):
     """The arrays ``jnp.stack(c, axis=-1)`` of each list of components ``c`` in ``parts``, their
     last axis reshaped to ``shapes`` (``(4,)``, ``(3, 3)``); inside the ``with`` block, in kernel
-    mode, :func:`components` of one of them returns its ``c``
-    themselves. A derivative kernel traces its op on these, so that the cotangents reach the
-    components as they are, not through the concatenation that transposes a split (which XLA
-    fuses with their producers into one loop per component)."""
+    mode, :func:`components` of one of them returns its ``c`` themselves. A derivative kernel
+    traces its op on these, so that the cotangents reach the components as they are, not through
+    the concatenation that transposes a split (which XLA fuses with their producers into one loop
+    per component)."""
     arrays = [jnp.stack(c, axis=-1).reshape(c[0].shape + shape) for c, shape in zip(parts, shapes)]
     token = _STACKED.set(_STACKED.get() + tuple(zip(arrays, parts)))
     try:

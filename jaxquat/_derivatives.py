@@ -86,9 +86,12 @@ def _custom(fn, core: tuple[int, ...], out_core: int, value_in_one_loop: bool, s
 
     @op.defjvp
     def _jvp(primals, tangents):
-        bind = functools.partial(_linear_p.bind, fn=kernels.tangent, transpose=kernels.cotangent, n=len(primals))
-        (tangent,) = bind(*primals, *tangents)
-        return op(*primals), tangent
+        y = op(*primals)
+        out = ((jnp.shape(y), jnp.result_type(y)),)  # the tangent's type: the kernel is not traced for it
+        (tangent,) = _linear_p.bind(
+            *primals, *tangents, fn=kernels.tangent, transpose=kernels.cotangent, n=len(primals), out=out
+        )
+        return y, tangent
 
     return op
 
@@ -187,43 +190,48 @@ def _split(args, n):
     return args[:n], args[n:]
 
 
-def _abstract(*args, fn, transpose, n):
-    xs, ys = _split([jax.ShapeDtypeStruct(a.shape, a.dtype) for a in args], n)
-    outs = jax.eval_shape(fn, xs, ys)
-    return [args[0].update(shape=o.shape, dtype=o.dtype) for o in outs]
+def _abstract(*args, fn, transpose, n, out):
+    """The outputs' types, given (``out``): tracing the kernel for them cost each bind (the JVP,
+    partial evaluation, the transpose) a trace of the op."""
+    return [args[0].update(shape=shape, dtype=dtype) for shape, dtype in out]
 
 
-def _lower(ctx, *args, fn, transpose, n):
+def _lower(ctx, *args, fn, transpose, n, out):
     return mlir.lower_fun(lambda *a: fn(*_split(a, n)), multiple_results=True)(ctx, *args)
 
 
-def _transpose(cts, *args, fn, transpose, n):
+def _type(y) -> tuple:
+    aval = y.aval if ad.is_undefined_primal(y) else y
+    return (tuple(jnp.shape(aval)), jnp.dtype(aval.dtype))
+
+
+def _transpose(cts, *args, fn, transpose, n, out):
     xs, ys = _split(args, n)
     if any(ad.is_undefined_primal(x) for x in xs):
         raise NotImplementedError("jaxquat_linear_kernel is linear in its last operands only")
     cts = [ad.instantiate_zeros(c) for c in cts]
-    outs = _linear_p.bind(*xs, *cts, fn=transpose, transpose=fn, n=n)
+    outs = _linear_p.bind(*xs, *cts, fn=transpose, transpose=fn, n=n, out=tuple(_type(y) for y in ys))
     return [None] * n + [o if ad.is_undefined_primal(y) else None for o, y in zip(outs, ys)]
 
 
-def _jvp(primals, tangents, *, fn, transpose, n):
+def _jvp(primals, tangents, *, fn, transpose, n, out):
     """Second derivatives: the kernel differentiated as JAX traces it."""
     tangents = [ad.instantiate_zeros(t) for t in tangents]
-    outs = _linear_p.bind(*primals, fn=fn, transpose=transpose, n=n)
+    outs = _linear_p.bind(*primals, fn=fn, transpose=transpose, n=n, out=out)
     _, touts = jax.jvp(lambda *a: fn(*_split(a, n)), tuple(primals), tuple(tangents))
     return outs, list(touts)
 
 
-def _batch(args, dims, *, fn, transpose, n):
+def _batch(args, dims, *, fn, transpose, n, out):
     size = next(a.shape[d] for a, d in zip(args, dims) if d is not None)
     moved = [
         jnp.moveaxis(a, d, 0) if d is not None else jnp.broadcast_to(a, (size,) + a.shape) for a, d in zip(args, dims)
     ]
-    outs = _linear_p.bind(*moved, fn=fn, transpose=transpose, n=n)
+    outs = _linear_p.bind(*moved, fn=fn, transpose=transpose, n=n, out=tuple(((size, *s), d) for s, d in out))
     return outs, [0] * len(outs)
 
 
-_linear_p.def_impl(lambda *args, fn, transpose, n: list(fn(*_split(args, n))))
+_linear_p.def_impl(lambda *args, fn, transpose, n, out: list(fn(*_split(args, n))))
 _linear_p.def_abstract_eval(_abstract)
 mlir.register_lowering(_linear_p, _lower)
 ad.primitive_jvps[_linear_p] = _jvp

@@ -197,7 +197,9 @@ def test_linear_kernel_refuses_a_nonlinear_transpose():
     q = jnp.asarray(random_quats(2, 3), DTYPE)
 
     def f(x, dx):
-        return _derivatives._linear_p.bind(x, dx, fn=kernels.tangent, transpose=kernels.cotangent, n=1)[0]
+        return _derivatives._linear_p.bind(
+            x, dx, fn=kernels.tangent, transpose=kernels.cotangent, n=1, out=(((3, 3), x.dtype),)
+        )[0]
 
     with pytest.raises(NotImplementedError, match="linear in its last operands"):
         jax.linear_transpose(lambda x: f(x, q), q)(jnp.ones((3, 3), DTYPE))
