@@ -117,15 +117,18 @@ class _Kernels:
     def _traced(self, xs):
         return functools.partial(self._on_parts, [_core_shape(x, c) for x, c in zip(xs, self.core)])
 
+    def _output(self, y):
+        """``y``, the op's output or its tangent, with its components computed in one loop."""
+        return _in_one_loop(_flat_parts([y], [self.out_core]), [_core_shape(y, self.out_core)])[0]
+
     def value(self, xs):
         with _trig.kernel_mode():
-            out = self._traced(xs)(*_flat_parts(xs, self.core))
-        return _in_one_loop([out], [self.out_core])[0]
+            return self._output(self._traced(xs)(*_flat_parts(xs, self.core)))
 
     def tangent(self, xs, dxs):
         with _trig.kernel_mode():
             _, t = jax.jvp(self._traced(xs), tuple(_flat_parts(xs, self.core)), tuple(_flat_parts(dxs, self.core)))
-        return (_in_one_loop([t], [self.out_core])[0],)
+            return (self._output(t),)
 
     def cotangent(self, xs, cts):
         (ct,) = cts
@@ -134,13 +137,8 @@ class _Kernels:
         with _trig.kernel_mode():
             _, vjp = jax.vjp(self._traced(xs), *_flat_parts(full, self.core))
             dparts = vjp(jnp.broadcast_to(ct, batch + _core_shape(ct, self.out_core)))
-        looped = iter(_fusion.one_loop(jnp.broadcast_arrays(*dparts)))
-        out = []
-        for x, c in zip(xs, self.core):
-            comps = [next(looped) for _ in range(_size(x, c))]
-            dx = comps[0] if c == 0 else _arrays.by_products(*comps).reshape(batch + _core_shape(x, c))
-            out.append(_unbroadcast(dx, jnp.shape(x)))
-        return tuple(out)
+        dxs = _in_one_loop(list(dparts), [_core_shape(x, c) for x, c in zip(xs, self.core)])
+        return tuple(_unbroadcast(dx, jnp.shape(x)) for dx, x in zip(dxs, xs))
 
 
 def _core_shape(x, c: int) -> tuple[int, ...]:
@@ -160,18 +158,14 @@ def _flat_parts(xs, core) -> list[Array]:
     return out
 
 
-def _in_one_loop(arrays: list[Array], core: list[int]) -> list[Array]:
-    """``arrays`` unchanged, their components (the last ``core[i]`` axes) computed in one loop."""
-    parts, sizes = [], []
-    for a, c in zip(arrays, core):
-        flat = a.reshape(a.shape[: a.ndim - c] + (math.prod(a.shape[a.ndim - c :]),))
-        sizes.append(flat.shape[-1])
-        parts += [flat[..., i] for i in range(flat.shape[-1])]
+def _in_one_loop(parts: list[Array], shapes: list[tuple[int, ...]]) -> list[Array]:
+    """The arrays of core shapes ``shapes`` whose components are ``parts`` (in order, of one
+    batch shape), the components computed in one loop (:func:`jaxquat._fusion.one_loop`)."""
     looped = iter(_fusion.one_loop(jnp.broadcast_arrays(*parts)))
     out = []
-    for a, c, k in zip(arrays, core, sizes):
-        comps = [next(looped) for _ in range(k)]
-        out.append(comps[0].reshape(a.shape) if c == 0 else _arrays.by_products(*comps).reshape(a.shape))
+    for shape in shapes:
+        comps = [next(looped) for _ in range(math.prod(shape))]
+        out.append(_arrays.by_products(*comps).reshape(comps[0].shape + shape) if shape else comps[0])
     return out
 
 
