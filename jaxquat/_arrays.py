@@ -304,4 +304,4 @@ def compiled(fn, *arrays: Any, **static):
     ``jit``, ``vmap`` or ``grad`` the call is traced into the enclosing program (XLA inlines
     it): the same operations, so the same values. The bodies choose their kernels by the backend
     at trace time (:func:`jaxquat._trig.on_cpu`), so the compiled function is kept per choice."""
-    return _jit(fn, tuple(sorted(static)), _trig.on_cpu(lambda: True, lambda: False))(*arrays, **static)
+    return _jit(fn, tuple(sorted(static)), _trig.is_cpu())(*arrays, **static)

@@ -220,6 +220,11 @@ def on_cpu(cpu, other, *args):
     return cpu(*args) if _cpu() else other(*args)
 
 
+def is_cpu() -> bool:
+    """Whether JAX's default backend is CPU (at trace time; what :func:`on_cpu` asks)."""
+    return _cpu()
+
+
 @jax.custom_jvp
 def sincos(x: Array):
     """``(sin x, cos x)``, vectorisable, one shared range reduction (on CPU; ``jnp`` elsewhere)."""

@@ -153,7 +153,7 @@ def segment_length(substeps: int, state_bytes: int) -> int:
     """Steps per segment of an interval of ``substeps`` steps on a state of ``state_bytes``
     (:data:`_SEGMENT_BYTES`), 0 for none: about ``sqrt(substeps)``, so the states stored in reverse
     mode are the segments' starts plus one segment's steps."""
-    if substeps > 1 and substeps * state_bytes > _SEGMENT_BYTES and _trig.on_cpu(lambda: True, lambda: False):
+    if substeps > 1 and substeps * state_bytes > _SEGMENT_BYTES and _trig.is_cpu():
         return max(2, round(substeps**0.5))
     return 0
 

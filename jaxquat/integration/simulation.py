@@ -223,7 +223,7 @@ def simulate(
     adjoint = diffrax.RecursiveCheckpointAdjoint(checkpoints=_CHECKPOINTS) if adjoint is None else adjoint
     diagonal = substeps is not None and diagonal_given
     # a GPU takes the batch whole, and so does a solve with a progress bar (one bar, not one a chunk)
-    in_chunks = _trig.on_cpu(lambda: True, lambda: False) and not progress
+    in_chunks = _trig.is_cpu() and not progress
     chunks = (_CHUNK_BYTES // q0.dtype.itemsize, _ADAPTIVE_CHUNK) if in_chunks else (q0.size, q0.size)
     config = _Config(
         solver,

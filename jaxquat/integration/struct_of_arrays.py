@@ -340,7 +340,7 @@ def _inputs(q: Comps, z: Comps, h, params: Comps, first: tuple[Comps, Comps] | N
 def _mostly_small(one_loop: bool) -> bool:
     """``exp``'s ``mostly_small``: off in a one-loop step on CPU, where the derivatives' ``lax.cond``
     would cut a loop in two (off the CPU there is no loop to cut)."""
-    return not (one_loop and _trig.on_cpu(lambda: True, lambda: False))
+    return not (one_loop and _trig.is_cpu())
 
 
 def rkmk_stages(
