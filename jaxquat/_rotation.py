@@ -11,6 +11,8 @@ package (see :mod:`jaxquat._quaternion`).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import jax
 import jax.numpy as jnp
 from jax import Array
@@ -187,10 +189,19 @@ def from_rotvec(r: Array) -> Array:
 
     In components (:func:`_arrays.components`, :func:`_arrays.assemble`), differentiated by
     JAX with the custom JVP of :func:`_safe.sinc_cos_of_sq`."""
-    r0, r1, r2 = _arrays.components(r)
-    sinc, cos = _safe.sinc_cos_of_sq(0.25 * (r0 * r0 + r1 * r1 + r2 * r2))  # (phi/2)^2
+    return _arrays.assemble(*exp_components(_arrays.components(r)))
+
+
+def exp_components(r: Sequence[Array], mostly_small: bool = False) -> list[Array]:
+    """The components of ``Exp(r) = (cos(|r|/2), sin(|r|/2) r / |r|)`` from those of ``r`` (the
+    series near ``r = 0``), for kernels written on components (:func:`from_rotvec`, the integrator
+    steps, the torque-free flow's steady rotation). ``mostly_small``: for arguments nearly always
+    below the series' switch (:func:`_safe.sinc_cos_of_sq_mostly_small`)."""
+    r0, r1, r2 = r
+    s = 0.25 * (r0 * r0 + r1 * r1 + r2 * r2)  # (phi/2)^2
+    sinc, cos = (_safe.sinc_cos_of_sq_mostly_small if mostly_small else _safe.sinc_cos_of_sq)(s)
     h = 0.5 * sinc
-    return _arrays.assemble(cos, h * r0, h * r1, h * r2)
+    return [cos, h * r0, h * r1, h * r2]
 
 
 def _jacobian(phi: Array, linear: float | Array, quadratic: Array) -> Array:

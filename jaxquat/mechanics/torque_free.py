@@ -374,9 +374,7 @@ def propagate(q0: Array, omega0: Array, moments: Array, t: Array) -> tuple[Array
     # The steady rotation q0 Exp(w0 t) and the selects on components, in the one loop of the rest.
     q0, omega0, general = q0[(..., *times, slice(None))], omega0[(..., *times, slice(None))], general[(..., *times)]
     w0 = _arrays.components(omega0)
-    sinc, cos = _safe.sinc_cos_of_sq(0.25 * t * t * (w0[0] * w0[0] + w0[1] * w0[1] + w0[2] * w0[2]))
-    h = 0.5 * sinc * t
-    q_steady = _quaternion.multiply_dense(_arrays.components(q0), [cos, h * w0[0], h * w0[1], h * w0[2]])
+    q_steady = _quaternion.multiply_dense(_arrays.components(q0), _rotation.exp_components([x * t for x in w0]))
     out = _fusion.one_loop_both_ways(
         jnp.broadcast_arrays(*(jnp.where(general, a, b) for a, b in zip(q_gen + w_gen, q_steady + w0)))
     )
