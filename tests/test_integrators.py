@@ -744,13 +744,29 @@ def test_a_concrete_diagonal_tensor_is_taken_as_diagonal_under_a_user_s_jit(monk
     diagonal = jnp.diag(jnp.asarray(I_DIAG, DTYPE))
     rotation = jq.to_matrix(jq.normalize(jnp.asarray([1.0, 0.2, -0.3, 0.4], DTYPE)))
     ts = np.linspace(0.0, 0.2, 3)
-    for inertia, kw in (
-        (diagonal, {}),
-        (diagonal, dict(solver=jq.RKMK4(), dt0=0.1)),
-        (rotation @ diagonal @ rotation.T, {}),
-    ):
-        jax.jit(functools.partial(lambda q, w, i, kw: jq.simulate(q, w, i, ts, **kw).q, i=inertia, kw=kw)).lower(q0, w0)
-    assert seen == [True, "principal"], seen
+    for n, (inertia, kw) in enumerate(
+        (
+            (diagonal, {}),
+            (diagonal, dict(solver=jq.RKMK4(), dt0=0.1)),
+            (np.diag(np.asarray(I_DIAG, DTYPE)), {}),  # NumPy under jit: jnp.asarray would make it a tracer
+            (np.diag(np.asarray(I_DIAG, DTYPE)), dict(solver=jq.RKMK4(), dt0=0.1)),
+            (rotation @ diagonal @ rotation.T, {}),
+        ),
+        start=5,
+    ):  # a batch size each: simulate's inner jit would otherwise reuse a trace of the same shapes
+        jax.jit(functools.partial(lambda q, w, i, kw: jq.simulate(q, w, i, ts, **kw).q, i=inertia, kw=kw)).lower(
+            q0[:1].repeat(n, 0), w0[:1].repeat(n, 0)
+        )
+    assert seen == [True, True, "principal"], seen
+
+
+def test_a_concrete_inertia_is_checked_under_a_user_s_jit():
+    """A NumPy tensor handed to ``simulate`` inside ``jit`` has known values: they are checked as
+    in an eager call (``jnp.asarray`` would have made it a tracer, and the check was skipped)."""
+    q0, w0 = jq.identity((2,), DTYPE), jnp.ones((2, 3), DTYPE)
+    bad = np.diag(np.asarray([1.0, 2.0, 5.0], DTYPE))
+    with pytest.raises(ValueError, match="argument 'inertia' violates the triangle inequality"):
+        jax.jit(lambda q, w: jq.simulate(q, w, bad, np.linspace(0.0, 0.2, 3)).q).lower(q0, w0)
 
 
 # A learned torque (an MLP with its weights in ``args``) and an element-wise PD law (its gains in

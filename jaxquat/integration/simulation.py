@@ -176,11 +176,13 @@ def simulate(
     """
     # the values of a concrete ts, taken before any jnp op (under jit those return tracers)
     ts_host = None if _checks.is_traced(ts) else np.asarray(ts, dtype=np.float64)
+    # whether it is diagonal, asked of the tensor as given (a NumPy array under a user's jit is
+    # concrete; jnp.asarray, and so validated, makes it a tracer there; broadcast to the batch
+    # below it is one anyway). 1000 bodies x 101 saved times, torque-free, float32, one core: a
+    # diagonal tensor taken as full was diagonalised per body, and the gradient took 298 ms.
+    given = inertia
     inertia = validated(inertia)  # values too, wherever they are concrete: every path trusts them after this
-    # whether it is diagonal, asked of the tensor as given: broadcast to the batch below, it is a
-    # tracer under a user's jit (1000 bodies x 101 saved times, torque-free, float32, one core:
-    # a diagonal tensor taken as full was diagonalised per body, and the gradient took 298 ms)
-    diagonal_given = _is_concrete_diagonal(inertia)
+    diagonal_given = _is_concrete_diagonal(given)
     ts = _checks.scalar_like(ts, "ts")
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(f"argument 'ts' must be shaped (n,) with n >= 2, got shape {tuple(ts.shape)}")

@@ -216,11 +216,13 @@ def check_inertia(inertia: Any, name: str = "inertia", rtol: float | None = None
 
 
 def validated(inertia: Any, name: str = "inertia") -> Array:
-    """Shape check always; value check when the values are concrete (eager calls)."""
-    arr = _checks.inertia(inertia, name)
-    if not _checks.is_traced(arr):
-        check_inertia(arr, name)
-    return arr
+    """Shape check always; value check when the values are concrete: an eager call, or a NumPy
+    array (or any value not traced) handed in under ``jit``, which ``jnp.asarray`` would turn
+    into a tracer there."""
+    if not _checks.is_traced(inertia):
+        with jax.ensure_compile_time_eval():
+            check_inertia(inertia, name)
+    return _checks.inertia(inertia, name)
 
 
 def principal_axes(
