@@ -141,6 +141,58 @@ class _Kernels:
         return tuple(_unbroadcast(dx, jnp.shape(x)) for dx, x in zip(dxs, xs))
 
 
+def forward_and_reverse(
+    forward: Callable[[Array], Array], reverse: Callable[[Array], Array]
+) -> Callable[[Array], Array]:
+    """One function of one array written twice: ``forward`` gives the value and the forward-mode
+    tangent (JAX's ``jvp`` of it), ``reverse`` the reverse-mode cotangent (JAX's ``vjp`` of it),
+    each the form XLA compiles best for that mode (``from_matrix``: ``jaxquat._rotation``). The two
+    must be the same function, branch for branch. The tangent is bound through the linear
+    primitive below, whose transpose is the cotangent. Elsewhere than on CPU it is ``reverse``
+    itself (what ran there before)."""
+    return _two_forms(forward, reverse)
+
+
+@functools.cache
+def _two_forms(forward, reverse):
+    def run(x: Array) -> Array:
+        return _split_op(forward, reverse)(x) if _trig.is_cpu() else reverse(x)
+
+    return run
+
+
+@functools.cache
+def _split_op(forward, reverse):
+    kernels = _SplitKernels(forward, reverse)
+
+    @jax.custom_jvp
+    def op(x):
+        return forward(x)
+
+    @op.defjvp
+    def _jvp(primals, tangents):
+        y = op(*primals)
+        out = ((jnp.shape(y), jnp.result_type(y)),)
+        (tangent,) = _linear_p.bind(*primals, *tangents, fn=kernels.tangent, transpose=kernels.cotangent, n=1, out=out)
+        return y, tangent
+
+    return op
+
+
+class _SplitKernels:
+    """The tangent (``forward``'s ``jvp``) and cotangent (``reverse``'s ``vjp``) of
+    :func:`forward_and_reverse` (hashable by identity: primitive parameters)."""
+
+    def __init__(self, forward, reverse):
+        self.forward, self.reverse = forward, reverse
+
+    def tangent(self, xs, dxs):
+        return [jax.jvp(self.forward, tuple(xs), tuple(dxs))[1]]
+
+    def cotangent(self, xs, cts):
+        return list(jax.vjp(self.reverse, *xs)[1](*cts))
+
+
 def _core_shape(x, c: int) -> tuple[int, ...]:
     return tuple(jnp.shape(x)[jnp.ndim(x) - c :])
 

@@ -2,7 +2,9 @@
 ``to_euler``: the tangents, cotangents and second derivatives they give must be JAX's own
 derivatives of the same op (the undecorated kernel, differentiated operation by operation through
 its closed-form scalar rules), at random and singular points, under every transform; and they
-must compile as one loop on CPU and not exist elsewhere."""
+must compile as one loop on CPU and not exist elsewhere. Also ``from_matrix``'s two forms
+(``forward_and_reverse``): the same function, their tangent and cotangent each other's
+transpose."""
 
 import functools
 import re
@@ -12,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from hypothesis import given, settings
+from jax.test_util import check_grads
 
 from helpers import DTYPE, NP_DTYPE, X64, random_quats, seeds
 from jaxquat import _derivatives, _rotation, _trig
@@ -212,7 +215,7 @@ def test_matrix_inputs_and_scalar_outputs():
 
     m = jax.vmap(jax.jit(lambda q: _rotation.to_matrix(q)))(jnp.asarray(random_quats(4, 6), DTYPE))
     m = m + 0.01 * jnp.asarray(np.random.default_rng(1).normal(size=m.shape), DTYPE)  # off SO(3) too
-    shepperd = d.derivatives_in_one_loop(_rotation.from_matrix_shepperd, core=(2,), out_core=1)
+    shepperd = d.derivatives_in_one_loop(_rotation._shepperd_components, core=(2,), out_core=1)
     w = jnp.asarray(np.random.default_rng(2).normal(size=(6, 4)), DTYPE)
     first = d.derivatives_in_one_loop(lambda q: _rotation._to_rotvec(q)[..., 0], core=(1,), out_core=0)
     q = jnp.asarray(random_quats(8, 5), DTYPE)
@@ -224,10 +227,93 @@ def test_matrix_inputs_and_scalar_outputs():
 
         return (
             each(shepperd, jax.grad(lambda q: jnp.sum(first(q) ** 2))),
-            each(_rotation.from_matrix_shepperd, jax.grad(lambda q: jnp.sum(_rotation._to_rotvec(q)[..., 0] ** 2))),
+            each(_rotation._shepperd_components, jax.grad(lambda q: jnp.sum(_rotation._to_rotvec(q)[..., 0] ** 2))),
         )
 
     got, want = both(m, q)
     _assert_close(got[0], want[0], rtol=64 * EPS)
     for g, expected in zip(got[1:], want[1:]):
         _assert_close(g, expected)
+
+
+def _matrices(seed: int) -> jnp.ndarray:
+    """Rotation matrices (random, the identity, half turns), matrices on the boundaries of
+    ``from_matrix``'s cases (``R22 = 0``, ``R00 = R11``, ``R00 = -R11``: quarter turns about the
+    axes, exact), and all of them perturbed off SO(3)."""
+    rotations = np.asarray(jax.jit(_rotation.to_matrix)(jnp.asarray(random_quats(seed, 10), DTYPE)), np.float64)
+    quarter = np.array(
+        [
+            [[1, 0, 0], [0, 0, -1], [0, 1, 0]],  # about x: R22 = 0
+            [[0, 0, 1], [0, 1, 0], [-1, 0, 0]],  # about y: R00 = R22 = 0
+            [[0, -1, 0], [1, 0, 0], [0, 0, 1]],  # about z: R00 = R11 = -R11 = 0
+            [[-1, 0, 0], [0, -1, 0], [0, 0, 1]],  # a half turn about z: R00 = R11
+        ],
+        np.float64,
+    )
+    exact = np.concatenate([rotations, quarter])
+    off = exact + 0.05 * np.random.default_rng(seed).normal(size=exact.shape)
+    return jnp.asarray(np.concatenate([exact, off]), DTYPE)
+
+
+@functools.cache
+def _from_matrix_derivatives():
+    """The value, one ``jvp`` and the gradient of ``sum(f * W)`` of ``from_matrix_shepperd`` (its
+    two forms) and of its reverse-mode form alone (JAX's derivatives of it), compiled once."""
+
+    def run(f, m, dm, w):
+        return f(m), jax.jvp(f, (m,), (dm,))[1], jax.grad(lambda m: jnp.sum(f(m) * w))(m)
+
+    return (
+        jax.jit(functools.partial(run, _rotation.from_matrix_shepperd)),
+        jax.jit(functools.partial(run, _rotation._shepperd_components)),
+    )
+
+
+@settings(max_examples=5, deadline=None)
+@given(seed=seeds)
+def test_from_matrix_forms_are_one_function(seed):
+    """``_shepperd_rows`` (value, forward mode) and ``_shepperd_components`` (reverse mode) give
+    the same quaternions on and off SO(3), on the cases' boundaries too; the tangent (the first
+    form's) and the cotangent (the second's) are each other's transpose, ``<J dm, W> = <dm, J^T
+    W>``, and equal JAX's derivatives of the second form."""
+    m = _matrices(seed % 1000)
+    rng = np.random.default_rng(seed)
+    dm = jnp.asarray(rng.normal(size=m.shape), DTYPE)
+    w = jnp.asarray(rng.normal(size=m.shape[:-2] + (4,)), DTYPE)
+    np.testing.assert_array_equal(jax.jit(_rotation._shepperd_rows)(m), jax.jit(_rotation._shepperd_components)(m))
+    both, reverse = _from_matrix_derivatives()
+    value, tangent, cotangent = both(m, dm, w)
+    want_value, want_tangent, want_cotangent = reverse(m, dm, w)
+    np.testing.assert_array_equal(value, want_value)
+    _assert_close(tangent, want_tangent)
+    _assert_close(cotangent, want_cotangent)
+    inner = float(jnp.sum(tangent * w)), float(jnp.sum(dm * cotangent))
+    assert abs(inner[0] - inner[1]) <= RTOL * max(1.0, abs(inner[0])), inner
+
+
+@pytest.mark.skipif(not X64, reason="second derivatives compared in float64")
+def test_from_matrix_two_forms_under_transforms():
+    """``jacfwd`` (the first form's tangents) equals ``jacrev`` (the second's cotangents) at a half
+    turn and at a case boundary, and second derivatives agree with JAX's of the second form."""
+    m = _matrices(4)
+    for i in (0, 11, 12):  # the identity or a half turn, R22 = 0, R00 = R22 = 0
+        one = m[i]
+        _assert_close(jax.jacfwd(_rotation.from_matrix_shepperd)(one), jax.jacrev(_rotation.from_matrix_shepperd)(one))
+        _assert_close(
+            jax.hessian(lambda x: _rotation.from_matrix_shepperd(x)[1])(one),
+            jax.hessian(lambda x: _rotation._shepperd_components(x)[1])(one),
+        )
+    check_grads(_rotation.from_matrix_shepperd, (m[14],), order=2, modes=("fwd", "rev"))
+
+
+@pytest.mark.parametrize("cpu", [True, False], ids=["cpu", "other"])
+def test_from_matrix_forms_on_cpu_only(cpu, monkeypatch):
+    """On CPU the tangent is the linear primitive (the two forms); elsewhere (the backend test
+    patched) ``from_matrix`` is the reverse-mode form, which JAX differentiates both ways."""
+    monkeypatch.setattr(_trig, "_cpu", lambda: cpu)
+    m = _matrices(2)
+
+    def jvp(m):  # a fresh function: jit's trace cache is keyed by the function
+        return jax.jvp(_rotation.from_matrix_shepperd, (m,), (m,))[1]
+
+    assert ("jaxquat_linear_kernel" in str(jax.make_jaxpr(jvp)(m))) == cpu

