@@ -1,7 +1,8 @@
 """Small fixed-size array kernels: the dot product over a minor axis of 3 or 4, the 3x3
 matrix-vector product and the symmetric 3x3 solve, the cross-product matrix and its inverse,
-constants broadcast to a batch, and scalars stored before they are broadcast; and
-:func:`compiled`, through which the public functions run their bodies as one compiled program.
+constants broadcast to a batch, and scalars stored before they are broadcast; :func:`compiled`,
+through which the public functions run their bodies as one compiled program; and
+:func:`rows_at_a_time`, a kernel over blocks of a long batch.
 
 The kernels are written out per component because XLA on CPU compiles a reduction over a minor axis
 this short into a slow loop, while the written-out form fuses into the surrounding
@@ -305,3 +306,26 @@ def compiled(fn, *arrays: Any, **static):
     it): the same operations, so the same values. The bodies choose their kernels by the backend
     at trace time (:func:`jaxquat._trig.on_cpu`), so the compiled function is kept per choice."""
     return _jit(fn, tuple(sorted(static)), _trig.is_cpu())(*arrays, **static)
+
+
+def rows_at_a_time(fn, rows: int, *xs: Array) -> Array:
+    """``fn(*xs)`` for arrays of one leading axis (a flattened batch), ``rows`` rows at a time when
+    the batch is longer: a ``fori_loop`` over blocks, the last block ending at the last row
+    (it overlaps the one before it, whose rows it computes again, to the same values), each
+    written into the result by ``dynamic_update_slice``. For a kernel whose temporaries would
+    pass glibc's 32 MiB ``mmap`` threshold over the whole batch: XLA on CPU maps such a buffer
+    afresh at every call and faults in every page (``from_matrix``'s cotangent at 10^6 in float32:
+    36 MB of temporaries, 47 ms whole, 26 ms in blocks of 2^15 rows, 14 ms with glibc's maps
+    disabled). ``fn`` maps ``(rows, ...)`` blocks to ``(rows, ...)`` blocks."""
+    n = xs[0].shape[0]
+    if n <= rows:
+        return fn(*xs)
+    out = jax.eval_shape(fn, *(jax.ShapeDtypeStruct((rows,) + x.shape[1:], x.dtype) for x in xs))
+    blocks = -(-n // rows)
+
+    def body(i, acc):
+        start = jnp.minimum(i * rows, n - rows)
+        block = fn(*(jax.lax.dynamic_slice_in_dim(x, start, rows) for x in xs))
+        return jax.lax.dynamic_update_slice_in_dim(acc, block, start, 0)
+
+    return jax.lax.fori_loop(0, blocks, body, jnp.zeros((n,) + out.shape[1:], out.dtype))

@@ -142,28 +142,29 @@ class _Kernels:
 
 
 def forward_and_reverse(
-    forward: Callable[[Array], Array], reverse: Callable[[Array], Array]
+    forward: Callable[[Array], Array], cotangent: Callable[[Array, Array], Array], elsewhere: Callable[[Array], Array]
 ) -> Callable[[Array], Array]:
-    """One function of one array written twice: ``forward`` gives the value and the forward-mode
-    tangent (JAX's ``jvp`` of it), ``reverse`` the reverse-mode cotangent (JAX's ``vjp`` of it),
-    each the form XLA compiles best for that mode (``from_matrix``: ``jaxquat._rotation``). The two
-    must be the same function, branch for branch. The tangent is bound through the linear
-    primitive below, whose transpose is the cotangent. Elsewhere than on CPU it is ``reverse``
-    itself (what ran there before)."""
-    return _two_forms(forward, reverse)
+    """One function of one array written for each mode: ``forward`` gives the value and the
+    forward-mode tangent (JAX's ``jvp`` of it), ``cotangent(x, ct)`` the reverse-mode cotangent,
+    each the form XLA compiles best for that mode (``from_matrix``: ``jaxquat._rotation``). The
+    cotangent must be the transpose of ``forward``'s tangent, branch for branch. The tangent is
+    bound through the linear primitive below, whose transpose is the cotangent (second
+    derivatives: JAX's derivatives of the two). Elsewhere than on CPU it is ``elsewhere``, the
+    same function, differentiated by JAX."""
+    return _two_forms(forward, cotangent, elsewhere)
 
 
 @functools.cache
-def _two_forms(forward, reverse):
+def _two_forms(forward, cotangent, elsewhere):
     def run(x: Array) -> Array:
-        return _split_op(forward, reverse)(x) if _trig.is_cpu() else reverse(x)
+        return _two_forms_op(forward, cotangent)(x) if _trig.is_cpu() else elsewhere(x)
 
     return run
 
 
 @functools.cache
-def _split_op(forward, reverse):
-    kernels = _SplitKernels(forward, reverse)
+def _two_forms_op(forward, cotangent):
+    kernels = _TwoForms(forward, cotangent)
 
     @jax.custom_jvp
     def op(x):
@@ -179,18 +180,18 @@ def _split_op(forward, reverse):
     return op
 
 
-class _SplitKernels:
-    """The tangent (``forward``'s ``jvp``) and cotangent (``reverse``'s ``vjp``) of
-    :func:`forward_and_reverse` (hashable by identity: primitive parameters)."""
+class _TwoForms:
+    """The tangent (``forward``'s ``jvp``) and the cotangent of :func:`forward_and_reverse`
+    (hashable by identity: primitive parameters)."""
 
-    def __init__(self, forward, reverse):
-        self.forward, self.reverse = forward, reverse
+    def __init__(self, forward, cotangent):
+        self.forward, self._cotangent = forward, cotangent
 
     def tangent(self, xs, dxs):
         return [jax.jvp(self.forward, tuple(xs), tuple(dxs))[1]]
 
     def cotangent(self, xs, cts):
-        return list(jax.vjp(self.reverse, *xs)[1](*cts))
+        return [self._cotangent(*xs, *cts)]
 
 
 def _core_shape(x, c: int) -> tuple[int, ...]:

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from . import _arrays, _derivatives, _quaternion, _safe
+from . import _arrays, _derivatives, _fusion, _quaternion, _safe
 
 
 def to_matrix(q: Array) -> Array:
@@ -150,23 +150,75 @@ def _shepperd_rows(m: Array) -> Array:
 
 
 def _shepperd_components(m: Array) -> Array:
-    """:func:`from_matrix_shepperd` for reverse mode: in components (:func:`_arrays.components` of
-    the nine entries, :func:`_arrays.assemble`)."""
+    """:func:`from_matrix_shepperd` in components (:func:`_arrays.components` of the nine entries,
+    :func:`_arrays.assemble`), as JAX differentiates it off the CPU."""
     col, scale = _shepperd_column(_arrays.components(m.reshape(m.shape[:-2] + (9,))))
     return _arrays.assemble(*(c * scale for c in col))
+
+
+# Rows of the cotangent computed at a time (_arrays.rows_at_a_time): 2^15 matrices, 1.2 MB of
+# float32 temporaries. At 10^6 in float32 (one core): 25.5 ms in blocks of 15 625 rows, 26.4 in
+# blocks of 62 500, 40.0 in blocks of 250 000 (36 MB of temporaries a call, each page faulted in).
+_COTANGENT_ROWS = 2**15
+
+
+def _shepperd_cotangent(m: Array, g: Array) -> Array:
+    """The cotangent of :func:`from_matrix_shepperd` at ``m`` ``(..., 3, 3)`` for ``g`` ``(..., 4)``,
+    written out: with ``q = s c / |c|`` (``c`` the chosen column, ``s`` its sign), ``c``'s
+    cotangent is ``(s / |c|) (g - q (q . g))``; each entry of the column is one entry of ``K + I``,
+    a signed sum of entries of ``R``, whose cotangents the nine sums below gather. Computed in
+    one loop (the nine arrays), stacked, in blocks of :data:`_COTANGENT_ROWS` matrices. JAX's
+    ``vjp`` of the component form took 44-46 ms at 10^6 in float32 (one core), of the row form
+    75 ms; this 25-27 ms."""
+    batch = m.shape[:-2]
+    flat_m, flat_g = m.reshape((-1, 3, 3)), jnp.broadcast_to(g, batch + (4,)).reshape((-1, 4))
+    return _arrays.rows_at_a_time(_shepperd_cotangent_rows, _COTANGENT_ROWS, flat_m, flat_g).reshape(batch + (3, 3))
+
+
+def _shepperd_cotangent_rows(m: Array, g: Array) -> Array:
+    entries = [m[..., i, j] for i in range(3) for j in range(3)]
+    col, scale = _shepperd_column(entries)
+    q = [c * scale for c in col]
+    gk = [g[..., k] for k in range(4)]
+    qg = sum(a * b for a, b in zip(q, gk))
+    gc = [scale * (b - a * qg) for a, b in zip(q, gk)]
+    r00, r11, r22 = entries[0], entries[4], entries[8]
+    low = r22 < 0
+    first = jnp.where(low, r00 > r11, r00 < -r11)
+    chosen = [~low & ~first, low & first, low & ~first, ~low & first]  # the column's index, 0 to 3
+    zero = jnp.zeros_like(r00)
+    d = [jnp.where(chosen[a], gc[a], zero) for a in range(4)]  # K's diagonal
+
+    def k(a: int, b: int) -> Array:  # K's entry (a, b), a < b: in column a as row b, in column b as row a
+        return jnp.where(chosen[a], gc[b], jnp.where(chosen[b], gc[a], zero))
+
+    k01, k02, k03, k12, k13, k23 = k(0, 1), k(0, 2), k(0, 3), k(1, 2), k(1, 3), k(2, 3)
+    ct = [
+        d[0] + d[1] - d[2] - d[3],
+        k12 - k03,
+        k02 + k13,
+        k03 + k12,
+        d[0] - d[1] + d[2] - d[3],
+        k23 - k01,
+        k13 - k02,
+        k01 + k23,
+        d[0] - d[1] - d[2] + d[3],
+    ]
+    return jnp.stack(_fusion.one_loop(ct), axis=-1).reshape(m.shape)
 
 
 def from_matrix_shepperd(m: Array) -> Array:
     """The unit quaternion of ``R`` from a column of ``K(R) + I = 4 q q^T`` (:func:`_shepperd_column`),
     canonical sign.
 
-    Written twice (:func:`_derivatives.forward_and_reverse`): the value and forward mode by
-    :func:`_shepperd_rows`, reverse mode by :func:`_shepperd_components`. At 10^6 (one core of
-    this 2-core EPYC, least of 9 runs; before: Shepperd's column in components for all three):
-    the value 7.1 -> 3.8 ms in float32 and 40 -> 6.9 ms in float64 (jaxlie 3.4 and 6.4 ms), one
-    ``jvp`` 39 -> 7.7 and 77 -> 23 ms, the gradient of ``sum(f(m) * W)`` 47 -> 44 and 97 -> 91 ms
-    (in rows it took 75 and 120 ms)."""
-    return _derivatives.forward_and_reverse(_shepperd_rows, _shepperd_components)(m)
+    Written for each mode on CPU (:func:`_derivatives.forward_and_reverse`): the value and forward
+    mode by :func:`_shepperd_rows`, reverse mode by :func:`_shepperd_cotangent`; elsewhere
+    :func:`_shepperd_components`, differentiated by JAX. At 10^6 (one core of this 2-core EPYC,
+    least of 9 runs, three processes; before: Shepperd's column in components for all three): the
+    value 7.1 -> 4.0 ms in float32 and 40 -> 7.2 ms in float64 (jaxlie 3.5 and 6.6 ms), one
+    ``jvp`` 39 -> 7.6-8.2 and 77 -> 14-28 ms, the gradient of ``sum(f(m) * W)`` 47 -> 23-27 and
+    97 -> 41-48 ms."""
+    return _derivatives.forward_and_reverse(_shepperd_rows, _shepperd_cotangent, _shepperd_components)(m)
 
 
 def _to_rotvec(q: Array, rescale: bool = False) -> Array:

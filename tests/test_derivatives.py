@@ -280,11 +280,11 @@ def test_from_matrix_forms_are_one_function(seed):
     rng = np.random.default_rng(seed)
     dm = jnp.asarray(rng.normal(size=m.shape), DTYPE)
     w = jnp.asarray(rng.normal(size=m.shape[:-2] + (4,)), DTYPE)
-    np.testing.assert_array_equal(jax.jit(_rotation._shepperd_rows)(m), jax.jit(_rotation._shepperd_components)(m))
+    _assert_close(jax.jit(_rotation._shepperd_rows)(m), jax.jit(_rotation._shepperd_components)(m), rtol=8 * EPS)
     both, reverse = _from_matrix_derivatives()
     value, tangent, cotangent = both(m, dm, w)
     want_value, want_tangent, want_cotangent = reverse(m, dm, w)
-    np.testing.assert_array_equal(value, want_value)
+    _assert_close(value, want_value, rtol=8 * EPS)
     _assert_close(tangent, want_tangent)
     _assert_close(cotangent, want_cotangent)
     inner = float(jnp.sum(tangent * w)), float(jnp.sum(dm * cotangent))
@@ -317,3 +317,20 @@ def test_from_matrix_forms_on_cpu_only(cpu, monkeypatch):
         return jax.jvp(_rotation.from_matrix_shepperd, (m,), (m,))[1]
 
     assert ("jaxquat_linear_kernel" in str(jax.make_jaxpr(jvp)(m))) == cpu
+
+
+def test_from_matrix_cotangent_in_blocks(monkeypatch):
+    """The cotangent runs over blocks of rows (``_arrays.rows_at_a_time``), the last block
+    overlapping the one before it: the same values as over the whole batch, for a batch of two
+    axes; and a block function over one block or fewer rows is called once, unblocked."""
+    m = _matrices(6).reshape(4, 7, 3, 3)
+    g = jnp.asarray(np.random.default_rng(6).normal(size=(4, 7, 4)), DTYPE)
+    whole = jax.jit(lambda m, g: _rotation._shepperd_cotangent(m, g))(m, g)
+    monkeypatch.setattr(_rotation, "_COTANGENT_ROWS", 8)  # 28 rows: blocks at 0, 8, 16 and 20
+    blocked = jax.jit(lambda m, g: _rotation._shepperd_cotangent(m, g))(m, g)
+    _assert_close(blocked, whole, rtol=64 * EPS)  # other loops, other contractions: a few ulp
+    calls = []
+    from jaxquat import _arrays
+
+    _arrays.rows_at_a_time(lambda x: calls.append(x.shape) or x, 8, jnp.zeros((8, 2), DTYPE))
+    assert calls == [(8, 2)]
