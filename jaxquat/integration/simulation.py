@@ -154,7 +154,10 @@ def simulate(
         q0: initial attitude ``(..., 4)``, unit, scalar first (body to space).
         omega0: initial body angular velocity ``(..., 3)``.
         inertia: body inertia tensor ``(..., 3, 3)``, symmetric positive definite (values
-            checked when concrete).
+            checked when concrete: eagerly, or a NumPy array under ``jit``). A concrete diagonal
+            tensor is known to be diagonal, under ``jit`` too, and takes the faster paths (the
+            closed form without diagonalising, the fixed-step scan reading the moments only:
+            ``np.diag(...)``, not ``jnp.diag(...)`` inside a jitted function).
         ts: the times to save at ``(n,)``, strictly increasing, ``n >= 2``; the solve starts
             at ``ts[0]``.
         torque: ``fn(t, q, w, args) -> (3,)`` for one body, or ``None`` (torque-free).
