@@ -2,9 +2,9 @@
 ``to_euler``: the tangents, cotangents and second derivatives they give must be JAX's own
 derivatives of the same op (the undecorated kernel, differentiated operation by operation through
 its closed-form scalar rules), at random and singular points, under every transform; and they
-must compile as one loop on CPU and not exist elsewhere. Also ``from_matrix``'s two forms
-(``forward_and_reverse``): the same function, their tangent and cotangent each other's
-transpose."""
+must compile as one loop on CPU and not exist elsewhere. Also ``from_matrix`` on CPU
+(``forward_and_reverse``): its row form, its component form and its written-out cotangent are one
+function, its tangent and cotangent each other's transpose."""
 
 import functools
 import re
@@ -272,10 +272,10 @@ def _from_matrix_derivatives():
 @settings(max_examples=5, deadline=None)
 @given(seed=seeds)
 def test_from_matrix_forms_are_one_function(seed):
-    """``_shepperd_rows`` (value, forward mode) and ``_shepperd_components`` (reverse mode) give
-    the same quaternions on and off SO(3), on the cases' boundaries too; the tangent (the first
-    form's) and the cotangent (the second's) are each other's transpose, ``<J dm, W> = <dm, J^T
-    W>``, and equal JAX's derivatives of the second form."""
+    """``_shepperd_rows`` (value, forward mode on CPU) and ``_shepperd_components`` (elsewhere)
+    give the same quaternions on and off SO(3), on the cases' boundaries too; the tangent (the
+    first form's) and the written-out cotangent (``_shepperd_cotangent``) are each other's
+    transpose, ``<J dm, W> = <dm, J^T W>``, and equal JAX's derivatives of the second form."""
     m = _matrices(seed % 1000)
     rng = np.random.default_rng(seed)
     dm = jnp.asarray(rng.normal(size=m.shape), DTYPE)
@@ -293,8 +293,9 @@ def test_from_matrix_forms_are_one_function(seed):
 
 @pytest.mark.skipif(not X64, reason="second derivatives compared in float64")
 def test_from_matrix_two_forms_under_transforms():
-    """``jacfwd`` (the first form's tangents) equals ``jacrev`` (the second's cotangents) at a half
-    turn and at a case boundary, and second derivatives agree with JAX's of the second form."""
+    """``jacfwd`` (the row form's tangents) equals ``jacrev`` (the written-out cotangents) at the
+    identity or a half turn and at case boundaries, and second derivatives agree with JAX's of the
+    component form."""
     m = _matrices(4)
     for i in (0, 11, 12):  # the identity or a half turn, R22 = 0, R00 = R22 = 0
         one = m[i]
