@@ -1,5 +1,7 @@
 """Element-wise ops whose forward-mode tangent and reverse-mode cotangent each run as one loop over
-the batch on CPU: :func:`derivatives_in_one_loop`.
+the batch on CPU: :func:`derivatives_in_one_loop`; and :func:`forward_and_reverse`, an op whose
+value and tangent come from one form and whose cotangent is written out (``from_matrix``), through
+the same linear primitive.
 
 JAX differentiates an op by its operations: reverse mode stores the forward pass's intermediates
 (each an array over the batch, written and read back) and runs the transposed operations in
@@ -79,10 +81,16 @@ def derivatives_in_one_loop(
 def _custom(fn, core: tuple[int, ...], out_core: int, value_in_one_loop: bool, static: tuple):
     f = functools.partial(fn, **dict(static))
     kernels = _Kernels(f, core, out_core)
+    return _with_linear_tangent(kernels.value if value_in_one_loop else lambda xs: f(*xs), kernels)
+
+
+def _with_linear_tangent(value: Callable, kernels) -> Callable[..., Array]:
+    """A function of arrays whose value is ``value(xs)`` and whose tangent is the linear primitive
+    below, ``kernels.tangent``, with ``kernels.cotangent`` its transpose (a ``custom_jvp``)."""
 
     @jax.custom_jvp
     def op(*xs):
-        return kernels.value(xs) if value_in_one_loop else f(*xs)
+        return value(xs)
 
     @op.defjvp
     def _jvp(primals, tangents):
@@ -164,20 +172,7 @@ def _two_forms(forward, cotangent, elsewhere):
 
 @functools.cache
 def _two_forms_op(forward, cotangent):
-    kernels = _TwoForms(forward, cotangent)
-
-    @jax.custom_jvp
-    def op(x):
-        return forward(x)
-
-    @op.defjvp
-    def _jvp(primals, tangents):
-        y = op(*primals)
-        out = ((jnp.shape(y), jnp.result_type(y)),)
-        (tangent,) = _linear_p.bind(*primals, *tangents, fn=kernels.tangent, transpose=kernels.cotangent, n=1, out=out)
-        return y, tangent
-
-    return op
+    return _with_linear_tangent(lambda xs: forward(*xs), _TwoForms(forward, cotangent))
 
 
 class _TwoForms:

@@ -42,7 +42,7 @@ def _k_entries(b: Array | list[Array], shift: float):
     ``K(R) + I = 4 q q^T`` (Bar-Itzhack 2000), so every column of it is
     proportional to ``q``. ``b`` is ``(..., 3, 3)`` or its nine entries row by row.
     """
-    entries = b if isinstance(b, list) else [b[..., i, j] for i in range(3) for j in range(3)]
+    entries = b if isinstance(b, list) else _matrix_entries(b)
     b00, b01, b02, b10, b11, b12, b20, b21, b22 = entries
     diag = (
         shift + b00 + b11 + b22,
@@ -52,6 +52,11 @@ def _k_entries(b: Array | list[Array], shift: float):
     )
     off = (b21 - b12, b02 - b20, b10 - b01, b01 + b10, b02 + b20, b12 + b21)
     return diag, off
+
+
+def _matrix_entries(m: Array) -> list[Array]:
+    """The nine entries of ``m`` ``(..., 3, 3)``, row by row."""
+    return [m[..., i, j] for i in range(3) for j in range(3)]
 
 
 def _k_columns(diag, off):
@@ -151,7 +156,7 @@ def _shepperd_rows(m: Array) -> Array:
     """:func:`from_matrix_shepperd`'s value and forward mode: the entries indexed from ``m`` and the
     result's components stacked on a leading axis, moved last at the end (XLA computes it in two
     loops, each component's row contiguous)."""
-    col, scale = _shepperd_column([m[..., i, j] for i in range(3) for j in range(3)])
+    col, scale = _shepperd_column(_matrix_entries(m))
     return jnp.moveaxis(jnp.stack(col) * scale[None], 0, -1)
 
 
@@ -182,7 +187,7 @@ def _shepperd_cotangent(m: Array, g: Array) -> Array:
 
 
 def _shepperd_cotangent_rows(m: Array, g: Array) -> Array:
-    entries = [m[..., i, j] for i in range(3) for j in range(3)]
+    entries = _matrix_entries(m)
     col, scale = _shepperd_column(entries)
     q = [c * scale for c in col]
     gk = [g[..., k] for k in range(4)]
