@@ -202,6 +202,39 @@ def einsum(spec: str, *operands: Array) -> Array:
     return jnp.einsum(spec, *operands, precision=FULL)
 
 
+def outer_sum(a: Array, b: Array | None = None, weights: Array | None = None) -> Array:
+    """``sum_n w_n a_n b_n^T`` over the second-last axis: ``a`` ``(..., n, i)``, ``b`` ``(..., n, j)``
+    (``None``: ``a`` itself, and only the upper triangle is formed), ``weights`` ``(..., n)`` or
+    ``None`` (all ones); returns ``(..., i, j)`` (half-precision inputs summed in float32, the
+    result cast back). The products are element-wise and their sums one loop on CPU
+    (:func:`jaxquat._fusion.sums`); the cotangents are element-wise too.
+
+    Why not an ``einsum``: XLA on CPU ran it as a matrix product with an inner dimension of ``n``.
+    ``align_vectors`` of 10^6 vector pairs (one problem, with the ``rotate`` that makes them; one
+    core of this 2-core EPYC, least of 9 runs), einsum -> this: float32 value 9.8 -> 3.4 ms,
+    gradient 40 -> 3.9 ms, one ``jvp`` 39 -> 11 ms; float64 11.6 -> 3.6, 26-39 -> 16-24 and 55 ->
+    12 ms. ``mean`` of 10^6 quaternions: float32 2.0 -> 1.3, 6.2 -> 2.0 and 7.6 -> 4.4 ms;
+    float64 2.7 -> 1.4, 20-32 -> 2.8 and 10.7 -> 4.7 ms."""
+    symmetric = b is None
+    b = a if b is None else b
+    dtype = jnp.result_type(a, b, *([] if weights is None else [weights]))
+    if jnp.finfo(dtype).bits < 32:  # half precision: products and sums in float32, as a dot accumulates
+
+        def wide(x: Array | None) -> Array | None:
+            return None if x is None else x.astype(jnp.float32)
+
+        return outer_sum(a.astype(jnp.float32), wide(None if symmetric else b), wide(weights)).astype(dtype)
+    m, k = a.shape[-1], b.shape[-1]
+    parts = components(a) if symmetric else components(a) + components(b)
+    left, right = parts[:m], parts[-k:]
+    if weights is not None:
+        left = [weights * x for x in left]
+    pairs = [(i, j) for i in range(m) for j in range(i if symmetric else 0, k)]
+    sums = dict(zip(pairs, _fusion.sums([left[i] * right[j] for i, j in pairs], -1)))
+    rows = [[sums[(i, j) if (i, j) in sums else (j, i)] for j in range(k)] for i in range(m)]
+    return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
+
+
 def dot(a: Array, b: Array) -> Array:
     """``sum(a * b)`` over the last axis (size 3 or 4), written out per component: XLA fuses
     it into the surrounding expression, while a reduction over a minor axis that short

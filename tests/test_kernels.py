@@ -187,6 +187,177 @@ def test_one_loop_rejects_arrays_of_different_shapes():
             barrier((x, jnp.ones((4,), DTYPE)))
 
 
+def _sums_reference(xs, axis):
+    return tuple(jnp.sum(x, axis=axis) for x in jnp.broadcast_arrays(*xs))
+
+
+_sums_jit = jax.jit(lambda xs: _fusion.sums(xs, -1))
+_outer_sum_jit = jax.jit(_arrays.outer_sum)
+_sums_reference_jit = jax.jit(lambda xs: _sums_reference(xs, -1))
+
+
+@settings(max_examples=10, deadline=None)
+@given(seeds)
+def test_sums_are_the_sums_in_rows_and_past_1024_elements(seed):
+    """``sums`` equals one ``jnp.sum`` per array (broadcast first), for axes summed in one row
+    (5, 1024 elements) and in zero-padded rows (1025, 3000), to the rounding of a different
+    order of addition (a bound of length * eps * sum |x|)."""
+    rng = np.random.default_rng(seed)
+    for length in (5, 1024, 1025, 3000):
+        xs = (
+            jnp.asarray(rng.normal(size=(2, length)), DTYPE),
+            jnp.asarray(rng.normal(size=(1, length)) * 1e3, DTYPE),
+            jnp.asarray(rng.normal(size=(length,)), DTYPE),
+        )
+        got, want = _sums_jit(xs), _sums_reference_jit(xs)
+        for g, w, x in zip(got, want, jnp.broadcast_arrays(*xs)):
+            assert g.shape == w.shape == (2,)
+            bound = length * EPS * np.sum(np.abs(np.asarray(x, np.float64)), axis=-1)
+            np.testing.assert_array_less(np.abs(np.asarray(g, np.float64) - np.asarray(w, np.float64)), bound)
+
+
+def test_sums_past_1024_elements_are_accurate():
+    """``mean``'s ``sum q q^T`` over 2^20 quaternions (ten sums in one ``reduce``), normal and
+    near-constant components: within 128 eps of the exact sums of the same values, relative to
+    the largest. XLA adds a ten-operand ``reduce`` in order, and in one row the error was
+    3.8e-4 and 9.7e-4 in float32 (over 3000 eps); in rows of 1024, 7.1e-7 and 2.7e-6, as an
+    ``einsum``'s (2.7e-7, 5.6e-6)."""
+    rng = np.random.default_rng(5)
+    for q in (rng.normal(size=(2**20, 4)), 1.0 + 1e-3 * rng.uniform(size=(2**20, 4))):
+        q = q.astype(NP_DTYPE)
+        q64 = q.astype(np.float64)  # float32 products exact in float64; fsum exact sums
+        exact = np.array([[math.fsum(q64[:, min(i, j)] * q64[:, max(i, j)]) for j in range(4)] for i in range(4)])
+        got = np.asarray(_outer_sum_jit(jnp.asarray(q)), np.float64)
+        assert np.abs(got - exact).max() / np.abs(exact).max() < 128 * EPS
+
+
+def _sums_step(summed):
+    """A small function of ``x`` through sums over each axis of products (``summed``: ``sums`` or
+    the reference), for the derivative tests."""
+
+    def step(x):
+        a, b, d = summed((x * x, jnp.sin(x) * x[:1], x), 1)
+        (c,) = summed((a[:, None] * x * b[:, None],), 0)
+        return jnp.sum(c * c) + jnp.sum(a * b * d)
+
+    return step
+
+
+def test_sums_derivatives_are_those_of_the_sums():
+    """``grad``, ``jvp``, ``jacfwd``, ``linearize``, the Hessian both ways, the gradient of a
+    ``jvp``, ``vmap`` (with an unbatched operand), ``jax.checkpoint``: through ``sums`` the same
+    as through ``jnp.sum``, to rounding (the loops add in another order); ``check_grads`` to
+    order 2. Under ``jvp`` the values and the tangents share one bind, which ``linearize`` and
+    remat split again (the partial-evaluation rules of ``jaxquat._fusion``)."""
+    x = jnp.asarray(np.random.default_rng(2).uniform(0.1, 1.0, size=(3, 5)), DTYPE)
+    dx = jnp.asarray(np.random.default_rng(3).normal(size=(3, 5)), DTYPE)
+    step, plain = _sums_step(_fusion.sums), _sums_step(_sums_reference)
+    tol = dict(rtol=64 * EPS, atol=64 * EPS)
+    for transform in (
+        lambda f: jax.grad(f)(x),
+        lambda f: jax.jvp(f, (x,), (dx,))[1],
+        lambda f: jax.jacfwd(f)(x),
+        lambda f: jax.hessian(f)(x),
+        lambda f: jax.jacrev(jax.jacfwd(f))(x),
+        lambda f: jax.grad(lambda x: jax.jvp(f, (x,), (dx,))[1])(x),
+        lambda f: jax.linearize(f, x)[1](dx),
+        lambda f: jax.grad(jax.checkpoint(f))(x),
+        lambda f: jax.jacfwd(jax.grad(jax.checkpoint(f)))(x),
+        lambda f: jax.vmap(jax.grad(f))(jnp.stack([x, 2 * x])),
+    ):
+        got, want = jax.jit(lambda t=transform: t(step))(), jax.jit(lambda t=transform: t(plain))()
+        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+            np.testing.assert_allclose(a, b, **tol)
+    mapped, unmapped = jax.vmap(lambda a, b: _fusion.sums((a, b), 0), in_axes=(0, None), out_axes=(0, None))(x, x[0])
+    np.testing.assert_allclose(mapped, jnp.sum(x, axis=1), **tol)
+    np.testing.assert_allclose(unmapped, jnp.sum(x[0]), **tol)
+    check_grads(step, (x,), order=2, modes=["fwd", "rev"])
+
+
+@pytest.mark.skipif(not X64, reason="a lowering test: its verdict does not depend on the dtype")
+def test_sums_lower_to_one_variadic_reduce_on_cpu_only():
+    """On CPU three sums are one ``reduce`` with three results (past 1024 elements two: the rows,
+    then their sums), under ``jvp`` the values and the tangents one ``reduce`` with six; for a GPU
+    (lowered here without one, by ``jax.export``) one ``reduce`` per sum."""
+
+    def module(fn, *args, platform="cpu"):
+        return jax.export.export(jax.jit(fn), platforms=[platform])(*args).mlir_module()
+
+    def three(x):
+        return _fusion.sums((x * 2, x + 1, x * x), 0)
+
+    x, long = jnp.ones((7,), DTYPE), jnp.ones((3000,), DTYPE)
+    assert module(three, x).count("stablehlo.reduce") == 1
+    assert re.search(r"%\w+:3 = stablehlo\.reduce\(", module(three, x))
+    assert module(three, long).count("stablehlo.reduce") == 2
+    assert re.search(r"%\w+:6 = stablehlo\.reduce\(", module(lambda x, d: jax.jvp(three, (x,), (d,)), x, x))
+    assert module(three, x, platform="cuda").count("stablehlo.reduce") == 3
+    assert not re.search(r"%\w+:\d+ = stablehlo\.reduce\(", module(three, x, platform="cuda"))
+
+
+def test_sums_reject_an_axis_out_of_range_and_keep_dtypes():
+    x = jnp.ones((3, 4), DTYPE)
+    with pytest.raises(ValueError, match="sums: axis 2 out of range for arrays of 2 dimensions"):
+        _fusion.sums((x,), 2)
+    half, full = jax.jit(lambda a, b: _fusion.sums((a, b), 1))(x.astype(jnp.float16), x)
+    assert half.dtype == jnp.float16 and full.dtype == DTYPE
+    np.testing.assert_array_equal(half, 4.0)
+    np.testing.assert_array_equal(full, 4.0)
+
+
+@settings(max_examples=10, deadline=None)
+@given(seeds)
+def test_outer_sum_is_the_weighted_sum_of_outer_products(seed):
+    """``sum_n w_n a_n b_n^T`` against NumPy's ``einsum`` in float64: with and without weights,
+    ``b`` given or ``a`` itself (the symmetric form, only its upper triangle summed), a batch of
+    problems and a single vector pair; its derivatives by ``check_grads``."""
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(2, 5, 4)).astype(NP_DTYPE)
+    b = rng.normal(size=(2, 5, 3)).astype(NP_DTYPE)
+    w = rng.uniform(0.1, 2.0, size=(2, 5)).astype(NP_DTYPE)
+    a64, b64, w64 = (x.astype(np.float64) for x in (a, b, w))
+    cases = [
+        (_outer_sum_jit(a, b, w), np.einsum("...n,...ni,...nj->...ij", w64, a64, b64)),
+        (_outer_sum_jit(a, b), np.einsum("...ni,...nj->...ij", a64, b64)),
+        (_outer_sum_jit(a, None, w), np.einsum("...n,...ni,...nj->...ij", w64, a64, a64)),
+        (_outer_sum_jit(a), np.einsum("...ni,...nj->...ij", a64, a64)),
+        (_outer_sum_jit(a[:, :1], b[:, :1]), np.einsum("...ni,...nj->...ij", a64[:, :1], b64[:, :1])),
+    ]
+    for got, want in cases:
+        assert got.shape == want.shape and got.dtype == DTYPE
+        np.testing.assert_allclose(got, want, rtol=16 * EPS, atol=16 * EPS * np.abs(want).max())
+    symmetric = np.asarray(cases[3][0])
+    np.testing.assert_array_equal(symmetric, np.swapaxes(symmetric, -1, -2))
+
+
+def test_outer_sum_derivatives():
+    """First and second derivatives, both modes, equal those of the ``einsum`` it replaced (to
+    rounding), with and without weights and in the symmetric form; ``check_grads`` in float64
+    (in float32 the finite differences of this cubic round at the tolerance)."""
+    rng = np.random.default_rng(7)
+    a, b, w = (jnp.asarray(rng.normal(size=s), DTYPE) for s in ((3, 4), (3, 3), (3,)))
+    pairs = [
+        (lambda a, b, w: _arrays.outer_sum(a, b, w), lambda a, b, w: jnp.einsum("n,ni,nj->ij", w, a, b)),
+        (lambda a, b, w: _arrays.outer_sum(a, b), lambda a, b, w: jnp.einsum("ni,nj->ij", a, b)),
+        (lambda a, b, w: _arrays.outer_sum(a, None, w), lambda a, b, w: jnp.einsum("n,ni,nj->ij", w, a, a)),
+    ]
+    tol = dict(rtol=64 * EPS, atol=64 * EPS)
+    args = (0, 1, 2)
+    transforms = (
+        lambda f: jax.jacfwd(f, args),
+        lambda f: jax.jacrev(f, args),
+        lambda f: jax.jacfwd(jax.jacrev(f, args), args),
+        lambda f: jax.jacrev(jax.jacfwd(f, args), args),
+    )
+    for fn, ref in pairs:
+        for transform in transforms:
+            got, want = jax.jit(transform(fn))(a, b, w), jax.jit(transform(ref))(a, b, w)
+            for g, r in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+                np.testing.assert_allclose(g, r, **tol)
+        if X64:
+            check_grads(fn, (a, b, w), order=2, modes=["fwd", "rev"])
+
+
 def _roundtrip(x):
     return _arrays.assemble(*_arrays.components(x))
 

@@ -206,7 +206,7 @@ def _quest(b: Array, r: Array, w: Array) -> Array:
     dtype = b.dtype
     work = _checks.working_dtype(dtype)
     b, r, w = b.astype(work), r.astype(work), w.astype(work)
-    bmat = _arrays.einsum("...n,...ni,...nj->...ij", w, r, b)
+    bmat = _arrays.outer_sum(r, b, w)
     lam0 = jnp.sum(w * jnp.sqrt(_safe.norm_sq(r) * _safe.norm_sq(b)), axis=-1)
     return _quest_kernel(_rotation.k_matrix(bmat), lam0).astype(dtype)
 
@@ -292,6 +292,7 @@ def align_vectors(
 
 
 def _align_vectors(a: Array, b: Array, weights: Array | None = None, *, return_sensitivity: bool):
+    unweighted = weights is None
     if weights is None:
         weights = jnp.ones(a.shape[:-1], a.dtype)
         bad = jnp.zeros(a.shape[:-2], bool)
@@ -300,7 +301,7 @@ def _align_vectors(a: Array, b: Array, weights: Array | None = None, *, return_s
     if a.shape[-2] == 1:
         degenerate = (_safe.norm_sq(a[..., 0, :]) == 0) | (_safe.norm_sq(b[..., 0, :]) == 0)
         return _arrays.nan_where(bad | degenerate, _rotation.minimal_rotation(a[..., 0, :], b[..., 0, :]))
-    bmat = _arrays.einsum("...n,...ni,...nj->...ij", weights, a, b)
+    bmat = _arrays.outer_sum(a, b, None if unweighted else weights)
     k = _rotation.k_matrix(bmat)
     q = _arrays.nan_where(bad | jnp.all(bmat == 0, axis=(-2, -1)), _rotation.top_eigenvector(k))
     if not return_sensitivity:

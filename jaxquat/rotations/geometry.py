@@ -79,9 +79,9 @@ def mean(
 
 
 def _mean(q: Array) -> Array:
-    return _rotation.top_eigenvector(_arrays.einsum("...ni,...nj->...ij", q, q))
+    return _rotation.top_eigenvector(_arrays.outer_sum(q))
 
 
 def _weighted_mean(q: Array, weights: Array) -> Array:
-    m = _arrays.einsum("...n,...ni,...nj->...ij", weights, q, q)
+    m = _arrays.outer_sum(q, weights=weights)
     return _arrays.nan_where(~_arrays.valid_weights(weights), _rotation.top_eigenvector(m))
