@@ -738,7 +738,9 @@ def test_a_concrete_diagonal_tensor_is_taken_as_diagonal_under_a_user_s_jit(monk
     to_principal, euler = simulation._to_principal, struct_of_arrays.EulerEquations
     monkeypatch.setattr(simulation, "_to_principal", lambda *a: seen.append("principal") or to_principal(*a))
     monkeypatch.setattr(
-        struct_of_arrays, "EulerEquations", lambda i, t, diagonal: seen.append(diagonal) or euler(i, t, diagonal)
+        struct_of_arrays,
+        "EulerEquations",
+        lambda i, t, diagonal, **kw: seen.append(diagonal) or euler(i, t, diagonal, **kw),
     )
     q0, w0 = jq.identity((5,), DTYPE), jnp.ones((5, 3), DTYPE)
     diagonal = jnp.diag(jnp.asarray(I_DIAG, DTYPE))

@@ -299,9 +299,12 @@ def _solve(cfg: _Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> 
     def solve(q, w, inertia_1, torque_fn):
         """One solve of a body, or of a whole batch stacked on the leading axis."""
         if tableau is not None and substeps is not None:  # the Lie solvers' scan path, struct-of-arrays form
-            # torque_fn is already vmapped over a stacked batch; the frame change broadcasts
-            body_torque = None if torque_fn is None else as_body_torque(torque_fn, torque_frame)
-            euler = struct_of_arrays.EulerEquations(inertia_1, body_torque, diagonal)
+            # a batch's torque law per body, vmapped over the last axis of the components stacked
+            # along the first (EulerEquations' columns); one body's on its rows
+            body_torque = None if torque is None else as_body_torque(torque, torque_frame)
+            if body_torque is not None and batch:
+                body_torque = jax.vmap(body_torque, in_axes=(None, -1, -1, None), out_axes=-1)
+            euler = struct_of_arrays.EulerEquations(inertia_1, body_torque, diagonal, columns=bool(batch))
             qs, ws = struct_of_arrays.solve(tableau, euler, ts, q, w, args, substeps)
             return qs, ws, None
         if principal:  # the splittings work in principal axes: rotate there and back
