@@ -180,26 +180,35 @@ def _dce(used_outs, eqn):
     return list(used_outs), eqn.replace(invars=ins, outvars=outs)
 
 
-def _batch(args, dims, *, values: bool):
-    """Mapped and unmapped operands bound apart, so an unmapped value stays unmapped (``jacfwd``
-    maps the tangents only)."""
+def _bind_apart(primitive, args, dims, mapped_params: dict, unmapped_params: dict):
+    """A batching rule's bind: the mapped operands (their axis moved first) and the unmapped ones
+    bound apart, so an unmapped value stays unmapped (``jacfwd`` maps the tangents only)."""
     mapped = [d is not None for d in dims]
     a, b = _parts(mapped, [jnp.moveaxis(x, d, 0) if d is not None else x for x, d in zip(args, dims)])
-    out_a = iter(_one_loop_p.bind(*a, values=values))
-    out_b = iter(_one_loop_p.bind(*b, values=values) if b else [])
+    out_a = iter(primitive.bind(*a, **mapped_params))
+    out_b = iter(primitive.bind(*b, **unmapped_params) if b else [])
     return [next(out_a) if m else next(out_b) for m in mapped], [0 if m else None for m in mapped]
 
 
-_one_loop_p.def_impl(lambda *xs, values: list(xs))
-_one_loop_p.def_abstract_eval(_abstract)
-mlir.register_lowering(_one_loop_p, _lower)
-mlir.register_lowering(_one_loop_p, _lower_cpu, platform="cpu")
-ad.primitive_jvps[_one_loop_p] = _jvp
-ad.primitive_transposes[_one_loop_p] = _transpose
-batching.primitive_batchers[_one_loop_p] = _batch
-pe.custom_partial_eval_rules[_one_loop_p] = functools.partial(_partial_eval, _one_loop_p)
-pe.partial_eval_jaxpr_custom_rules[_one_loop_p] = _partial_eval_custom
-pe.dce_rules[_one_loop_p] = _dce
+def _batch(args, dims, *, values: bool):
+    return _bind_apart(_one_loop_p, args, dims, dict(values=values), dict(values=values))
+
+
+def _register(primitive, impl, abstract, lower, lower_cpu, jvp, transpose, batch) -> None:
+    """The rules of a primitive of this module (the partial-evaluation ones shared)."""
+    primitive.def_impl(impl)
+    primitive.def_abstract_eval(abstract)
+    mlir.register_lowering(primitive, lower)
+    mlir.register_lowering(primitive, lower_cpu, platform="cpu")
+    ad.primitive_jvps[primitive] = jvp
+    ad.primitive_transposes[primitive] = transpose
+    batching.primitive_batchers[primitive] = batch
+    pe.custom_partial_eval_rules[primitive] = functools.partial(_partial_eval, primitive)
+    pe.partial_eval_jaxpr_custom_rules[primitive] = _partial_eval_custom
+    pe.dce_rules[primitive] = _dce
+
+
+_register(_one_loop_p, lambda *xs, values: list(xs), _abstract, _lower, _lower_cpu, _jvp, _transpose, _batch)
 
 
 # Many sums over one axis in one loop ----------------------------------------------------------
@@ -293,22 +302,16 @@ def _sums_transpose(cts, *xs, axis: int):
 
 
 def _sums_batch(args, dims, *, axis: int):
-    """Mapped and unmapped operands summed apart, so an unmapped value stays unmapped (``jacfwd``
-    maps the tangents only)."""
-    mapped = [d is not None for d in dims]
-    a, b = _parts(mapped, [jnp.moveaxis(x, d, 0) if d is not None else x for x, d in zip(args, dims)])
-    out_a = iter(_sums_p.bind(*a, axis=axis + 1))
-    out_b = iter(_sums_p.bind(*b, axis=axis) if b else [])
-    return [next(out_a) if m else next(out_b) for m in mapped], [0 if m else None for m in mapped]
+    return _bind_apart(_sums_p, args, dims, dict(axis=axis + 1), dict(axis=axis))
 
 
-_sums_p.def_impl(lambda *xs, axis: _sums_apart(*xs, axis=axis))
-_sums_p.def_abstract_eval(_sums_abstract)
-mlir.register_lowering(_sums_p, mlir.lower_fun(_sums_apart, multiple_results=True))
-mlir.register_lowering(_sums_p, mlir.lower_fun(_sums_one_loop, multiple_results=True), platform="cpu")
-ad.primitive_jvps[_sums_p] = _sums_jvp
-ad.primitive_transposes[_sums_p] = _sums_transpose
-batching.primitive_batchers[_sums_p] = _sums_batch
-pe.custom_partial_eval_rules[_sums_p] = functools.partial(_partial_eval, _sums_p)
-pe.partial_eval_jaxpr_custom_rules[_sums_p] = _partial_eval_custom
-pe.dce_rules[_sums_p] = _dce
+_register(
+    _sums_p,
+    lambda *xs, axis: _sums_apart(*xs, axis=axis),
+    _sums_abstract,
+    mlir.lower_fun(_sums_apart, multiple_results=True),
+    mlir.lower_fun(_sums_one_loop, multiple_results=True),
+    _sums_jvp,
+    _sums_transpose,
+    _sums_batch,
+)
