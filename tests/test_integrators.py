@@ -499,14 +499,15 @@ def test_the_scan_path_step_is_one_loop_per_stage_on_cpu():
     assert reduces(jax.grad(loss(True))) == 3 + 1
     assert reduces(jax.grad(loss(False))) == 1  # the derivatives' test of |theta| (exp's mostly_small)
 
-    # a full tensor's gradient: its 18 entries (the tensor's and its inverse's) come out of the
-    # cotangents' loop per body (18 operands: the state is not differentiated here) and are summed
-    # over the batch after it; left out, each entry's sum was a reduction over the backward step
+    # a full tensor's gradient: its 12 entries (the six distinct ones of its symmetric part and of
+    # its inverse) come out of a cotangents' loop of their own per body (12 operands) and are
+    # summed over the batch after it; left out, each entry's sum was a reduction over the backward
+    # step, and with the state's cotangents in one loop XLA wrote 18 entries out one by one
     def inertia_loss(tensor):
         return sum(jnp.sum(x) for x in step(soa.EulerEquations(tensor, None, False), True, comps))
 
     text = jax.export.export(jax.jit(jax.grad(inertia_loss)), platforms=["cpu"])(inertia).mlir_module()
-    assert re.search(r"%\w+:18 = stablehlo\.reduce\(", text)
+    assert re.search(r"%\w+:12 = stablehlo\.reduce\(", text)
 
 
 def test_scan_path_gradient_and_unit_norm_in_float32_too():
@@ -760,6 +761,34 @@ def test_a_concrete_diagonal_tensor_is_taken_as_diagonal_under_a_user_s_jit(monk
             q0[:1].repeat(n, 0), w0[:1].repeat(n, 0)
         )
     assert seen == [True, True, "principal"], seen
+
+
+def test_the_scan_path_gradient_in_a_full_tensor_is_symmetric():
+    """The scan path's step reads a full tensor's symmetric part (``EulerEquations``: 12 entries
+    in a loop of their own, 2.4-5.6x faster than 18), so its gradient with respect to the tensor
+    is symmetric to the bit, and equals the symmetric part of the generic path's (``diffeqsolve``
+    on the rows, which reads all nine entries): the same derivative along any symmetric change,
+    which ``jvp`` gives too."""
+    rng = np.random.default_rng(4)
+    q0 = jq.normalize(jnp.asarray(rng.normal(size=(3, 4)), DTYPE))
+    w0 = jnp.asarray(rng.normal(size=(3, 3)), DTYPE)
+    rotation = jq.to_matrix(jq.normalize(jnp.asarray([1.0, 0.2, -0.3, 0.4], DTYPE)))
+    tensor = rotation @ jnp.diag(jnp.asarray(I_DIAG, DTYPE)) @ rotation.T
+    tensor = 0.5 * (tensor + tensor.T)
+    ts, weights = np.linspace(0.0, 0.5, 3), jnp.arange(1.0, 5.0, dtype=DTYPE)
+
+    def loss(tensor, **kw):
+        sim = jq.simulate(q0, w0, tensor, ts, torque=_spin_torque, args=0.3, solver=jq.RKMK4(), dt0=0.05, **kw)
+        return jnp.sum(sim.q[:, -1] * weights[None]) + jnp.sum(sim.omega[:, -1] ** 2)
+
+    scan = jax.jit(jax.grad(loss))(tensor)
+    generic = jax.jit(jax.grad(lambda t: loss(t, adjoint=diffrax.RecursiveCheckpointAdjoint())))(tensor)
+    np.testing.assert_array_equal(scan, scan.T)
+    assert_close(scan, 0.5 * (generic + generic.T), tol=1e-12 if X64 else 2e-5)
+    direction = jnp.asarray(rng.normal(size=(3, 3)), DTYPE)
+    direction = direction + direction.T
+    along = jax.jit(lambda t, d: jax.jvp(loss, (t,), (d,))[1])(tensor, direction)
+    assert_close(along, jnp.sum(scan * direction), tol=1e-12 if X64 else 2e-5)
 
 
 def test_a_concrete_inertia_is_checked_under_a_user_s_jit():

@@ -134,6 +134,11 @@ def unit(q: Comps) -> Comps:
     return tuple(scale * x for x in q)
 
 
+# A symmetric 3x3 matrix's six entries (row, column), and the place of each of the nine among them.
+_UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+_OF_NINE = tuple(_UPPER.index((min(i, j), max(i, j))) for i in range(3) for j in range(3))
+
+
 class EulerEquations:
     """``w_b' = I^-1 (M_b - w_b x I w_b)`` in components. ``inertia`` ``(3, 3)`` (shared) or
     ``(n, 3, 3)`` (per body); ``diagonal``: only its diagonal is read (a concrete diagonal
@@ -148,7 +153,20 @@ class EulerEquations:
     reduction of its own over the whole backward step, which XLA's CPU fusion emitters
     (jaxlib 0.10.2, its default) compiled into code that re-evaluates the step's subgraphs once
     per use: the gradient of 10 bodies x 1000 RKMK4 steps with respect to a full tensor took
-    34.8 s (8.9 s before session 43; 14 ms with the older emitters), 8.8 ms now."""
+    34.8 s (8.9 s before session 43; 14 ms with the older emitters), 8.8 ms now.
+
+    A full tensor is read as its symmetric part ``(I + I^T) / 2`` (the same tensor, to the bit,
+    if symmetric), as the six distinct entries of it and of its inverse: 12 entries, not 18,
+    whose cotangents come out of a loop of their own (:func:`_inputs`). The stages' share of a
+    gradient with respect to a full tensor is then symmetric, ``(G + G^T) / 2`` of the nine
+    entries' ``G`` (the same derivative along any symmetric change). 1000 bodies x 1000 RKMK4
+    steps, the gradient with respect to a traced full tensor, one core, least of 5: torque-free,
+    float32, 18 entries in the state's loop 214 ms (the gradient in the initial rates: 24 ms), 12
+    entries 97 ms, 12 in a loop of their own 38 ms, 15 (the tensor's nine) in a loop of their own
+    122 ms; float64 369 -> 83 ms; with the PD law 299 -> 91 ms (float64 542 -> 213 ms); the first
+    gradient compiled in 1.9 s instead of 3.2 s (float32, torque-free). XLA's CPU fusion did not
+    fuse the cotangents of 18 entries into the state's loop and wrote each out as a kernel of its
+    own that evaluated the backward step again."""
 
     def __init__(self, inertia: Array, torque: Callable | None, diagonal: bool, columns: bool = False):
         self.torque = torque
@@ -157,21 +175,23 @@ class EulerEquations:
         if diagonal:
             m = jnp.diagonal(inertia, axis1=-2, axis2=-1)
             self._inertia, self._inverse = m, 1 / m
-        else:
-            self._inertia, self._inverse = inertia, _arrays.symmetric_inverse(inertia)
+        else:  # its symmetric part (the same tensor, if symmetric: x + x and a half of it are exact)
+            sym = 0.5 * (inertia + jnp.swapaxes(inertia, -1, -2))
+            self._inertia, self._inverse = sym, _arrays.symmetric_inverse(sym)
         self._entries: Comps | None = None
 
     def entries(self) -> Comps:
-        """The arrays this reads: the moments and their inverses (diagonal), or the nine entries
-        of the tensor and of its inverse. Taken inside the step: read once before the loop they
-        were 18 scalar arrays, each a kernel XLA's CPU backend compiled on its own (the first
-        RKMK4 ``simulate`` of 1000 bodies, float32: 41 kernels and 0.44 s of XLA compilation,
-        against 24 and 0.37 s; a call unchanged, bit for bit)."""
+        """The arrays this reads: the moments and their inverses (diagonal), or the six distinct
+        entries of the tensor's symmetric part and of its inverse (``_UPPER``'s order). Taken
+        inside the step: read once before the loop they were 18 scalar arrays, each a kernel
+        XLA's CPU backend compiled on its own (the first RKMK4 ``simulate`` of 1000 bodies,
+        float32: 41 kernels and 0.44 s of XLA compilation, against 24 and 0.37 s; a call
+        unchanged, bit for bit)."""
         if self._entries is not None:
             return self._entries
         if self.diagonal:
             return split(self._inertia) + split(self._inverse)
-        return tuple(m[..., i, j] for m in (self._inertia, self._inverse) for i in range(3) for j in range(3))
+        return tuple(m[..., i, j] for m in (self._inertia, self._inverse) for i, j in _UPPER)
 
     def with_entries(self, entries: Comps) -> EulerEquations:
         """A copy that reads ``entries`` (:meth:`entries`' layout, any broadcastable shapes)."""
@@ -181,13 +201,14 @@ class EulerEquations:
 
     @staticmethod
     def _apply(m: Comps, v: Comps) -> Comps:
-        """``m v`` for a matrix given as its nine entries, row by row."""
-        return tuple(m[3 * i] * v[0] + m[3 * i + 1] * v[1] + m[3 * i + 2] * v[2] for i in range(3))
+        """``m v`` for a symmetric matrix given as its six distinct entries (``_UPPER``)."""
+        e = [m[k] for k in _OF_NINE]
+        return tuple(e[3 * i] * v[0] + e[3 * i + 1] * v[1] + e[3 * i + 2] * v[2] for i in range(3))
 
     def acceleration(self, w: Comps, torque: Comps | None) -> Comps:
         """``I^-1 (M - w x I w)`` for the body torque ``M`` (None: 0)."""
         e = self.entries()
-        half = len(e) // 2
+        half = len(e) // 2  # the tensor's entries, then its inverse's
         h = tuple(m * x for m, x in zip(e[:half], w)) if self.diagonal else self._apply(e[:half], w)
         gyro = cross(w, h)
         rhs = tuple(-g for g in gyro) if torque is None else tuple(m - g for m, g in zip(torque, gyro))
@@ -333,19 +354,24 @@ def rkmk_step(
 
 
 def _inputs(q: Comps, z: Comps, h, params: Comps, first: tuple[Comps, Comps] | None = None):
-    """A step's inputs through one reverse-mode barrier (:func:`jaxquat._fusion.one_loop_backward`),
-    so that all their cotangents come out of one loop over the batch: ``(q, z)``, the step ``h``
-    and the field's ``params`` (each broadcast to the batch: their gradients are per body there
-    and summed over the batch after it), and a carried first stage. Any input left out would be
+    """A step's inputs through reverse-mode barriers (:func:`jaxquat._fusion.one_loop_backward`),
+    so that their cotangents come out of loops over the batch: ``(q, z)``, the step ``h`` and a
+    carried first stage through one, the field's ``params`` (each broadcast to the batch: their
+    gradients are per body there and summed over the batch after it) through another
+    (:class:`EulerEquations` has why). Any input left out would be
     a reduction of its own over the whole backward step, compiled by XLA's CPU fusion emitters
     into code that re-evaluates the step's subgraphs once per use (the gradient of 10 bodies x
     1000 steps in seconds, not milliseconds: :class:`EulerEquations`)."""
     shape = jnp.shape(q[0])
     h = jnp.broadcast_to(jnp.asarray(h, jnp.result_type(q[0])), shape)
-    groups = [tuple(q), tuple(z), (h,), tuple(jnp.broadcast_to(p, shape) for p in params)]
+    params = tuple(jnp.broadcast_to(p, shape) for p in params)
+    groups = [tuple(q), tuple(z), (h,), params]
     if first is not None:
         groups += [tuple(first[0]), tuple(first[1])]
-    out = _grouped(_fusion.one_loop_backward, groups)
+    # the field's parameters in a loop of their own (EulerEquations: fused with the state's, their
+    # cotangents were kernels of their own)
+    out = _grouped(_fusion.one_loop_backward, groups[:3] + groups[4:])
+    out = out[:3] + [tuple(_fusion.one_loop_backward(params)) if params else ()] + out[3:]
     return out[0], out[1], out[2][0], out[3], None if first is None else (out[4], out[5])
 
 
