@@ -97,13 +97,10 @@ def _merged(*xs: Array) -> list[Array]:
     refuses a ``reduce`` of mixed precisions); other arrays pass as they are."""
     out = list(xs)
     nd = xs[0].ndim
-    for dtype in dict.fromkeys(x.dtype for x in xs if jnp.issubdtype(x.dtype, jnp.floating)):
-        idx = [i for i, x in enumerate(xs) if x.dtype == dtype]
-        zero = jnp.array(-0.0, dtype)
-        pads = [lax.pad(xs[i][..., None], zero, [(0, 0, 0)] * nd + [(0, 1, 0)]) for i in idx]
-        summed = lax.reduce(pads, [zero] * len(idx), lambda a, b: tuple(u + v for u, v in zip(a, b)), (nd,))
-        for i, y in zip(idx, summed):
-            out[i] = y
+    idx = [i for i, x in enumerate(xs) if jnp.issubdtype(x.dtype, jnp.floating)]
+    pads = [lax.pad(xs[i][..., None], jnp.array(-0.0, xs[i].dtype), [(0, 0, 0)] * nd + [(0, 1, 0)]) for i in idx]
+    for i, y in zip(idx, _reduce_by_dtype(pads, nd, -0.0)):
+        out[i] = y
     return out
 
 
@@ -262,12 +259,14 @@ def _add_pairs(a, b):
     return tuple(u + v for u, v in zip(a, b))
 
 
-def _reduce_by_dtype(xs: Sequence[Array], axis: int) -> list[Array]:
+def _reduce_by_dtype(xs: Sequence[Array], axis: int, init: float = 0.0) -> list[Array]:
+    """The sums of ``xs`` over ``axis`` from ``init``, as one variadic ``reduce`` per dtype (XLA
+    refuses a ``reduce`` of mixed precisions)."""
     out = list(xs)
     for dtype in dict.fromkeys(x.dtype for x in xs):
         idx = [i for i, x in enumerate(xs) if x.dtype == dtype]
-        zero = jnp.array(0, dtype)
-        summed = lax.reduce([xs[i] for i in idx], [zero] * len(idx), _add_pairs, (axis,))
+        start = jnp.array(init, dtype)
+        summed = lax.reduce([xs[i] for i in idx], [start] * len(idx), _add_pairs, (axis,))
         for i, y in zip(idx, summed):
             out[i] = y
     return out
