@@ -23,7 +23,7 @@ import jax.numpy as jnp
 from jax import Array
 from jax.interpreters import ad, batching, mlir
 
-from . import _fusion, _trig
+from . import _checks, _fusion, _trig
 
 try:  # jax >= 0.4.36; pyproject allows 0.4.30, where jax.core still held it
     from jax.extend.core import Primitive
@@ -218,12 +218,10 @@ def outer_sum(a: Array, b: Array | None = None, weights: Array | None = None) ->
     symmetric = b is None
     b = a if b is None else b
     dtype = jnp.result_type(a, b, *([] if weights is None else [weights]))
-    if jnp.finfo(dtype).bits < 32:  # half precision: products and sums in float32, as a dot accumulates
-
-        def wide(x: Array | None) -> Array | None:
-            return None if x is None else x.astype(jnp.float32)
-
-        return outer_sum(a.astype(jnp.float32), wide(None if symmetric else b), wide(weights)).astype(dtype)
+    work = _checks.working_dtype(dtype)  # half precision: products and sums in float32, as a dot accumulates
+    if work != dtype:
+        wide = None if weights is None else weights.astype(work)
+        return outer_sum(a.astype(work), None if symmetric else b.astype(work), wide).astype(dtype)
     m, k = a.shape[-1], b.shape[-1]
     parts = components(a) if symmetric else components(a) + components(b)
     left, right = parts[:m], parts[-k:]

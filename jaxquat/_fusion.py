@@ -216,7 +216,7 @@ _sums_p.multiple_results = True
 
 def sums(xs: Sequence[Array], axis: int) -> tuple[Array, ...]:
     """``jnp.sum(x, axis)`` of each of ``xs`` (broadcast to one shape), computed on CPU in one
-    loop: a variadic ``reduce`` (one per floating dtype), which reads the arrays once and takes
+    loop: a variadic ``reduce`` (one per dtype), which reads the arrays once and takes
     with it the element-wise work that forms them. A linear primitive: its tangent is itself, its
     cotangent each cotangent broadcast back along ``axis``. Elsewhere than on CPU, one ``reduce``
     per array (XLA's GPU compiler fuses sibling reductions itself).
