@@ -280,14 +280,25 @@ def from_rotvec(r: Array) -> Array:
     return _arrays.assemble(*exp_components(_arrays.components(r)))
 
 
-def exp_components(r: Sequence[Array], mostly_small: bool = False) -> list[Array]:
+# exp_components' ways of choosing between the series and the direct branch (_safe has each)
+_SINC_COS = {
+    "per element": _safe.sinc_cos_of_sq,
+    "derivatives by batch": _safe.sinc_cos_of_sq_mostly_small,
+    "by batch": _safe.sinc_cos_of_sq_small_batch,
+}
+
+
+def exp_components(r: Sequence[Array], branches: str = "per element") -> list[Array]:
     """The components of ``Exp(r) = (cos(|r|/2), sin(|r|/2) r / |r|)`` from those of ``r`` (the
     series near ``r = 0``), for kernels written on components (:func:`from_rotvec`, the integrator
-    steps, the torque-free flow's steady rotation). ``mostly_small``: for arguments nearly always
-    below the series' switch (:func:`_safe.sinc_cos_of_sq_mostly_small`)."""
+    steps, the torque-free flow's steady rotation). ``branches``: ``"per element"``, both branches
+    selected element by element (:func:`_safe.sinc_cos_of_sq`); for arguments nearly always
+    below the series' switch, ``"derivatives by batch"`` (the derivatives take the series alone
+    when the whole batch can: :func:`_safe.sinc_cos_of_sq_mostly_small`) or ``"by batch"`` (the
+    value as well: :func:`_safe.sinc_cos_of_sq_small_batch`). The same values in every way."""
     r0, r1, r2 = r
     s = 0.25 * (r0 * r0 + r1 * r1 + r2 * r2)  # (phi/2)^2
-    sinc, cos = (_safe.sinc_cos_of_sq_mostly_small if mostly_small else _safe.sinc_cos_of_sq)(s)
+    sinc, cos = _SINC_COS[branches](s)
     h = 0.5 * sinc
     return [cos, h * r0, h * r1, h * r2]
 

@@ -122,14 +122,36 @@ def sinc_cos_of_sq_mostly_small(s: Array) -> tuple[Array, Array]:
     return _sinc_cos_of_sq_parts(s)[:2]
 
 
-def _mostly_small_parts(s: Array) -> tuple[Array, Array, Array]:
-    def series(s):
-        return _horner(s, _SINC), _horner(s, _COS), _horner(s, _SINC_DERIVATIVE)
+def _series_parts(s: Array) -> tuple[Array, Array, Array]:
+    """:func:`_sinc_cos_of_sq_parts` for ``s`` below the switch: the series alone (the same values
+    as the selection's there, to the bit)."""
+    return _horner(s, _SINC), _horner(s, _COS), _horner(s, _SINC_DERIVATIVE)
 
-    return jax.lax.cond(jnp.all(s < _TRIG_SWITCH), series, _sinc_cos_of_sq_parts, s)
+
+def _mostly_small_parts(s: Array) -> tuple[Array, Array, Array]:
+    return jax.lax.cond(jnp.all(s < _TRIG_SWITCH), _series_parts, _sinc_cos_of_sq_parts, s)
 
 
 sinc_cos_of_sq_mostly_small.defjvp(_sinc_cos_jvp(_mostly_small_parts))
+
+
+@jax.custom_jvp
+def sinc_cos_of_sq_small_batch(s: Array) -> tuple[Array, Array]:
+    """:func:`sinc_cos_of_sq_mostly_small` with the value chosen by the same ``lax.cond`` as its
+    derivatives: the series alone when every element of ``s`` is below the switch, else the
+    per-element selection. The same values and derivatives, to the bit. For the stage attitudes
+    ``q Exp(theta_i)`` of an RKMK step on CPU (:mod:`jaxquat.integration.struct_of_arrays`),
+    where the cond cuts the stage's loop in two but saves the direct branch's square root, range
+    reduction, two polynomials and two divisions at three of a step's four exponentials. 1000
+    bodies x 1000 RKMK4 steps under the PD law (one core of this 2-core EPYC, least of 7, the
+    step's last exponential differentiated through the cond as well): float32 forward 13.4 ->
+    12.2 ms, gradient 74.1 -> 62.7 ms, one ``jvp`` 27.8 -> 24.7 ms; float64 28.7 -> 23.4, 175 ->
+    143 and 53.8 -> 46.6 ms. For the step's last exponential the cond on the value cost more
+    than it saved (torque-free, float32 forward 5.8 -> 6.3 ms)."""
+    return _mostly_small_parts(s)[:2]
+
+
+sinc_cos_of_sq_small_batch.defjvp(_sinc_cos_jvp(_mostly_small_parts))
 
 
 @jax.custom_jvp

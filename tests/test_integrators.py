@@ -440,6 +440,46 @@ def test_a_time_dependent_torque_sees_a_scalar_time_on_the_scan_path(solver):
     assert_close(fast.omega, slow.omega, tol=1e-11 if X64 else 2e-5, what="omega")
 
 
+def _pd_on_rows(t, q, w, gains):
+    return -gains[0] * q[..., 1:] - gains[1] * w + 0.1 * jnp.sin(t)
+
+
+@functools.partial(jax.jit, static_argnames="layout")
+def _one_step_and_gradient(w0, q0, layout):
+    """One RKMK4 step of 0.05 s of 4 bodies under a PD torque in ``layout`` (``"components"``: the
+    struct-of-arrays step, one loop per stage; ``"rows"``: the generic step on rows) and the
+    gradient of a weighted sum of the attitudes it ends at, in ``w0``."""
+    term = diffrax.ODETerm(jq.RigidBody(jnp.diag(jnp.asarray(I_DIAG, DTYPE)), _pd_on_rows))
+    solver, gains = jq.RKMK4(layout=layout), jnp.asarray([50.0, 0.8], DTYPE)
+    weights = jnp.asarray(np.linspace(-1.0, 1.0, 16).reshape(4, 4), DTYPE)
+
+    def final(w):
+        state = solver.init(term, 0.0, 0.05, (q0, w), gains)
+        return solver.step(term, 0.0, 0.05, (q0, w), gains, state, False)[0][0]
+
+    return final(w0), jax.grad(lambda w: jnp.sum(final(w) * weights))(w0)
+
+
+@pytest.mark.parametrize("fastest", [1.0, 100.0], ids=["all below the switch", "across it"])
+def test_the_scan_path_s_stage_exponentials_choose_their_branch_by_the_batch(fastest):
+    """With a torque the scan path's stage attitudes ``q Exp(theta_i)`` take the series alone when
+    every body's ``|theta_i| / 2`` is below its switch, else the selection per element (a
+    ``lax.cond``: ``struct_of_arrays._branches``). Both ways the final attitudes and their gradient
+    in ``w0`` are those of the row layout's step, whose exponentials select per element: rates up
+    to 1 rad/s (every ``|theta|`` below 0.05) and up to 100 rad/s (``|theta|`` up to 5, past the
+    switch's 0.28), a step of 0.05 s, a stiff attitude gain (50) so that the stage attitudes show."""
+    rng = np.random.default_rng(11)
+    q0 = jq.normalize(jnp.asarray(rng.normal(size=(4, 4)), DTYPE))
+    directions = rng.normal(size=(4, 3))
+    directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
+    w0 = jnp.asarray(directions * np.asarray([0.2, 0.5, 0.8, fastest])[:, None], DTYPE)
+    got, want = _one_step_and_gradient(w0, q0, "components"), _one_step_and_gradient(w0, q0, "rows")
+    # measured (the gradient's entries up to 5): 5.6e-17 and 1.8e-15 (float64), 6.0e-8 and 2.9e-6
+    # (float32); with the series taken when any body's angle is small, 1.9e-4 and 3e46 or NaN
+    assert_close(got[0], want[0], tol=1e-13 if X64 else 1e-6, what="attitudes")
+    assert_close(got[1], want[1], tol=1e-12 if X64 else 5e-5, what="gradient in w0")
+
+
 def test_the_lie_solvers_scan_path_is_the_struct_of_arrays_step(monkeypatch):
     """simulate's scan path runs LieEuler and RKMK4 on the struct-of-arrays step (whose reverse
     pass is element-wise) and the splittings on their own steps: a fresh shape (so the compiled
@@ -465,6 +505,8 @@ def test_the_scan_path_step_is_one_loop_per_stage_on_cpu():
     torque two more per stage (the stage's components before the rows the torque takes, its
     components after), and in reverse mode one for the cotangents of the step's inputs; under
     ``jvp`` the values and their tangents share each loop (4, not 8); without ``one_loop`` none.
+    The exponentials' conds (``struct_of_arrays._branches``): none in the torque-free forward
+    pass, one per stage attitude with a torque, one for the last exponential's derivatives.
     Counted in the lowered program (``jax.export``, no compilation)."""
     from jaxquat.integration import struct_of_arrays as soa
 
@@ -480,24 +522,30 @@ def test_the_scan_path_step_is_one_loop_per_stage_on_cpu():
         )
         return q1 + w1
 
-    def reduces(fn):
-        return jax.export.export(jax.jit(fn), platforms=["cpu"])(comps).mlir_module().count("stablehlo.reduce")
+    def loops(fn):
+        """(the one-loop barriers' reduces, the conds): each cond tests its batch by one reduce."""
+        text = jax.export.export(jax.jit(fn), platforms=["cpu"])(comps).mlir_module()
+        conds = text.count("stablehlo.case")
+        return text.count("stablehlo.reduce") - conds, conds
 
     inertia = jnp.diag(jnp.asarray(I_DIAG, DTYPE))
     free = soa.EulerEquations(inertia, None, True)
     pd = soa.EulerEquations(inertia, jax.vmap(lambda t, q, w, a: -q[1:] - w, in_axes=(None, 0, 0, None)), True)
-    assert reduces(lambda c: step(free, True, c)) == 4
-    assert reduces(lambda c: step(free, False, c)) == 0
-    assert reduces(lambda c: step(pd, True, c)) == 4 + 2 * 4
-    assert reduces(lambda c: jax.jvp(functools.partial(step, free, True), (c,), (c,))) == 4
+    # the last exponential's value is selected per element (no cond), its derivatives by the batch
+    assert loops(lambda c: step(free, True, c)) == (4, 0)
+    assert loops(lambda c: step(free, False, c)) == (0, 0)
+    # the three stage attitudes' exponentials choose their branch by the batch, value and derivatives
+    assert loops(lambda c: step(pd, True, c)) == (4 + 2 * 4, 3)
+    assert loops(lambda c: jax.jvp(functools.partial(step, free, True), (c,), (c,))) == (4, 1)
+    assert loops(lambda c: jax.jvp(functools.partial(step, pd, True), (c,), (c,))) == (4 + 2 * 4, 3 + 1)
 
     def loss(one_loop):
         return lambda c: sum(jnp.sum(x) for x in step(free, one_loop, c))
 
     # the stages' loops (their values are the backward pass's residuals) and the cotangents' loop;
     # the result's loop and the loss's sums are not needed for the gradient, so not lowered
-    assert reduces(jax.grad(loss(True))) == 3 + 1
-    assert reduces(jax.grad(loss(False))) == 1  # the derivatives' test of |theta| (exp's mostly_small)
+    assert loops(jax.grad(loss(True))) == (3 + 1, 1)
+    assert loops(jax.grad(loss(False))) == (0, 1)
 
     # a full tensor's gradient: its 12 entries (the six distinct ones of its symmetric part and of
     # its inverse) come out of a cotangents' loop of their own per body (12 operands) and are

@@ -102,16 +102,14 @@ def multiply(p: Comps, q: Comps) -> Comps:
     return tuple(_quaternion.multiply_dense(p, q))
 
 
-def exp(theta: Comps, mostly_small: bool = True) -> Comps:
+def exp(theta: Comps, branches: str = "derivatives by batch") -> Comps:
     """``Exp(theta) = (cos(|theta|/2), sin(|theta|/2) theta/|theta|)`` (the series near 0, as
     :func:`jaxquat.from_rotvec`: finite derivatives of every order at ``theta = 0``).
-    ``mostly_small``: a step's ``theta`` is nearly always there, so the derivatives skip the
-    direct branch when the whole batch can (:func:`jaxquat._safe.sinc_cos_of_sq_mostly_small`, a
-    ``lax.cond``); False: both branches selected per element (:func:`jaxquat._safe.sinc_cos_of_sq`),
-    for a step compiled as one loop (:func:`rkmk_step`'s ``one_loop``), which a ``cond`` would cut
-    into the loops before it and after it (the gradient of 1000 bodies x 1000 RKMK4 steps,
-    float32, one core: 33.4 ms with the ``cond``, 28.9 ms without)."""
-    return tuple(_rotation.exp_components(theta, mostly_small))
+    ``branches`` (:func:`jaxquat._rotation.exp_components`): a step's ``theta`` is nearly always
+    below the series' switch, so by default the derivatives skip the direct branch when the whole
+    batch can (a ``lax.cond``). A step compiled as a few loops on CPU chooses per exponential
+    (:func:`_branches`)."""
+    return tuple(_rotation.exp_components(theta, branches))
 
 
 def dexpinv(theta: Comps, w: Comps, order: int) -> Comps:
@@ -375,10 +373,20 @@ def _inputs(q: Comps, z: Comps, h, params: Comps, first: tuple[Comps, Comps] | N
     return out[0], out[1], out[2][0], out[3], None if first is None else (out[4], out[5])
 
 
-def _mostly_small(one_loop: bool) -> bool:
-    """``exp``'s ``mostly_small``: off in a one-loop step on CPU, where the derivatives' ``lax.cond``
-    would cut a loop in two (off the CPU there is no loop to cut)."""
-    return not (one_loop and _trig.is_cpu())
+def _branches(one_loop: bool, stage: bool) -> str:
+    """How ``exp`` chooses its branch in a step. Off the CPU, or without ``one_loop``: the
+    derivatives by the whole batch. In a one-loop step on CPU, where each ``lax.cond`` cuts a
+    loop in two: a stage attitude's exponential by the whole batch, value and derivatives (three
+    of RKMK4's four; measured at :func:`jaxquat._safe.sinc_cos_of_sq_small_batch`), the step's
+    last one (whose cut falls between the combination of the stages and the product with ``q``)
+    by the batch for its derivatives only. The last one's derivatives were selected per element
+    until session 51, when a cond there had cost more (the gradient of 1000 bodies x 1000 RKMK4
+    steps, float32, one core: 33.4 ms with the ``cond``, 28.9 ms without); now, torque-free,
+    float32 gradient 24.1 -> 24.3 ms and one ``jvp`` 12.8 -> 12.4 ms, float64 56.6 -> 52.1 and
+    24.5 -> 22.3 ms, forward unchanged (least of 7, one core)."""
+    if not (one_loop and _trig.is_cpu()):
+        return "derivatives by batch"
+    return "by batch" if stage else "derivatives by batch"
 
 
 def rkmk_stages(
@@ -402,7 +410,6 @@ def rkmk_stages(
     is known already (a first-same-as-last tableau's last stage of the step before). With
     ``one_loop`` each stage's slopes but the last pass through one loop (the last stage goes into
     the loop of whatever combines them)."""
-    mostly_small = _mostly_small(one_loop)
     ks: list[Comps] = []
     ls: list[Comps] = []
     wi: Comps = ()
@@ -417,7 +424,7 @@ def rkmk_stages(
             # attitudes: XLA dropped them, but every trace of the step built them (tracing the
             # first simulate at batch 1000: 0.075 -> 0.055 s; one Adam step through it 0.30 ->
             # 0.24-0.26 s; the same values and gradients to the bit)
-            qi = multiply(q, exp(theta, mostly_small)) if field_reads_q else q
+            qi = multiply(q, exp(theta, _branches(one_loop, stage=True))) if field_reads_q else q
         if i == 0 and first is not None:
             wi, li = first
         else:
@@ -437,7 +444,7 @@ def rkmk_combine(
     ``dz = h sum_i b_i l_i`` for the weights ``b_i`` (one Newton step on ``|q|``)."""
     theta = _weighted(list(zip(weights, ks)), h)
     dz = _weighted(list(zip(weights, ls)), h)
-    return unit(multiply(q, exp(theta, _mostly_small(one_loop)))), _add(z, dz), theta, dz
+    return unit(multiply(q, exp(theta, _branches(one_loop, stage=False)))), _add(z, dz), theta, dz
 
 
 class LieStep(NamedTuple):
