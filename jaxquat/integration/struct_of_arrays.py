@@ -379,11 +379,12 @@ def _branches(one_loop: bool, stage: bool) -> str:
     loop in two: a stage attitude's exponential by the whole batch, value and derivatives (three
     of RKMK4's four; measured at :func:`jaxquat._safe.sinc_cos_of_sq_small_batch`), the step's
     last one (whose cut falls between the combination of the stages and the product with ``q``)
-    by the batch for its derivatives only. The last one's derivatives were selected per element
-    until session 51, when a cond there had cost more (the gradient of 1000 bodies x 1000 RKMK4
-    steps, float32, one core: 33.4 ms with the ``cond``, 28.9 ms without); now, torque-free,
-    float32 gradient 24.1 -> 24.3 ms and one ``jvp`` 12.8 -> 12.4 ms, float64 56.6 -> 52.1 and
-    24.5 -> 22.3 ms, forward unchanged (least of 7, one core)."""
+    by the batch for its derivatives only. Until session 51 a one-loop step selected every
+    exponential per element: a cond on the last one had cost more when the step's loops were
+    first written (the gradient of 1000 bodies x 1000 RKMK4 steps, float32, one core: 33.4 ms with
+    the ``cond``, 28.9 ms without). With today's loops, torque-free, the cond on its derivatives
+    gives float32 gradient 24.1 -> 24.3 ms and one ``jvp`` 12.8 -> 12.4 ms, float64 56.6 -> 52.1
+    and 24.5 -> 22.3 ms, the forward pass unchanged (least of 7, one core)."""
     if not (one_loop and _trig.is_cpu()):
         return "derivatives by batch"
     return "by batch" if stage else "derivatives by batch"
