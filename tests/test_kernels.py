@@ -330,6 +330,24 @@ def test_outer_sum_is_the_weighted_sum_of_outer_products(seed):
     np.testing.assert_array_equal(symmetric, np.swapaxes(symmetric, -1, -2))
 
 
+@pytest.mark.parametrize("n", [1, 10, 32, 33])
+def test_sum_last_is_the_sum_over_the_last_axis(n):
+    """``_arrays.sum_last`` equals ``jnp.sum(x, -1)`` (to ``n`` eps of the sum of ``|x|``) with its
+    derivative; up to 32 terms it is written out, with no ``reduce`` in the lowered program (the
+    YNNPACK fusion it avoids), past that it is one ``reduce``."""
+    x = jnp.asarray(np.random.default_rng(n).normal(size=(3, 2, n)), DTYPE)
+    got, want = jax.jit(_arrays.sum_last)(x), jnp.sum(x, axis=-1)
+    assert got.shape == (3, 2) and got.dtype == DTYPE
+    np.testing.assert_allclose(got, want, rtol=0, atol=n * EPS * float(jnp.abs(x).sum(-1).max()))
+    weights = jnp.arange(1.0, 7.0, dtype=DTYPE).reshape(3, 2)
+    np.testing.assert_array_equal(
+        jax.jit(jax.grad(lambda x: jnp.sum(_arrays.sum_last(x) * weights)))(x),
+        jnp.broadcast_to(weights[..., None], x.shape),
+    )
+    text = jax.jit(_arrays.sum_last).lower(x).as_text()
+    assert text.count("stablehlo.reduce") == (0 if n <= 32 else 1)
+
+
 def test_outer_sum_derivatives():
     """First and second derivatives, both modes, equal those of the ``einsum`` it replaced (to
     rounding), with and without weights and in the symmetric form; ``check_grads`` in float64

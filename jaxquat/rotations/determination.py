@@ -207,7 +207,7 @@ def _quest(b: Array, r: Array, w: Array) -> Array:
     work = _checks.working_dtype(dtype)
     b, r, w = b.astype(work), r.astype(work), w.astype(work)
     bmat = _arrays.outer_sum(r, b, w)
-    lam0 = jnp.sum(w * jnp.sqrt(_safe.norm_sq(r) * _safe.norm_sq(b)), axis=-1)
+    lam0 = _arrays.sum_last(w * jnp.sqrt(_safe.norm_sq(r) * _safe.norm_sq(b)))
     return _quest_kernel(_rotation.k_matrix(bmat), lam0).astype(dtype)
 
 
