@@ -7,7 +7,8 @@ body-frame rotation vectors: ``q_true = q Exp(dtheta)`` (:func:`jaxquat.plus`), 
 covariance here is the covariance of ``dtheta`` in radians squared.
 
 Wahba's problem with weights ``w_i``: minimise ``sum_i w_i |r_i - R(q) b_i|^2``.
-:func:`align_vectors` solves it by a 4x4 ``eigh`` (Davenport's q-method);
+:func:`align_vectors` solves it by a 4x4 eigendecomposition (Davenport's q-method: ``eigh``,
+or on CPU for a batch of 1024 problems or more Jacobi rotations over the batch);
 :func:`quest` finds the same top eigenpair of Davenport's ``K`` by Newton's method on its
 characteristic polynomial (Shuster & Oh 1981), with no eigen-decomposition.
 """
