@@ -166,7 +166,34 @@ def _quest_kernel_jvp(primals, tangents):
     dkv = _arrays.einsum("...ij,...j->...i", dk, v)
     rhs = -(dkv - v * jnp.sum(v * dkv, axis=-1, keepdims=True))
     n = _shifted(k, lam) + v[..., :, None] * v[..., None, :]
-    return v, jnp.linalg.solve(n, rhs[..., None])[..., 0]
+    return v, _solve(n, rhs)
+
+
+def _solve(m: Array, b: Array) -> Array:
+    """``m x = b`` for stacks of small square ``m`` ``(..., k, k)`` and ``b`` ``(..., k)``: Gaussian
+    elimination with partial pivoting (each column's pivot the entry of largest size at or below
+    the diagonal), written out on the entries. ``jnp.linalg.solve`` ran an LU factorisation, a
+    sort of its pivots and two triangular solves per 4x4 matrix on CPU: 36 ms of the 89 ms
+    gradient of ``quest`` for 10^5 problems in float32 (the profiler's figures)."""
+    k = m.shape[-1]
+    rows = [[m[..., i, j] for j in range(k)] + [b[..., i]] for i in range(k)]
+    for c in range(k):
+        for r in range(c + 1, k):  # the larger of the two into the pivot row
+            swap = jnp.abs(rows[r][c]) > jnp.abs(rows[c][c])
+            rows[c], rows[r] = (
+                [jnp.where(swap, y, x) for x, y in zip(rows[c], rows[r])],
+                [jnp.where(swap, x, y) for x, y in zip(rows[c], rows[r])],
+            )
+        for r in range(c + 1, k):
+            f = rows[r][c] / rows[c][c]
+            rows[r] = rows[r][: c + 1] + [rows[r][j] - f * rows[c][j] for j in range(c + 1, k + 1)]
+    x: list[Array] = [jnp.zeros_like(b[..., 0])] * k
+    for i in reversed(range(k)):
+        total = rows[i][k]
+        for j in range(i + 1, k):
+            total = total - rows[i][j] * x[j]
+        x[i] = total / rows[i][i]
+    return jnp.stack(x, axis=-1)
 
 
 def _observations(vectors_body, vectors_ref, weights):
