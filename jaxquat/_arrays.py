@@ -253,7 +253,7 @@ def sum_last(x: Array) -> Array:
     with the element-wise work before and after it, to a YNNPACK fusion that ran it about 40x
     slower than the element-wise sum. ``quest``'s ``lambda_0 = sum_i w_i |r_i| |b_i|`` for 10^5
     problems of 10 vector pairs (one core of this 2-core EPYC, least of 7): the whole of
-    ``quest`` 80.7 -> 33.6 ms in float32, 139 -> 95 ms in float64, the reduce's fusion 40 ms of
+    ``quest`` 80.7 -> 26-34 ms in float32, 139 -> 95 ms in float64, the reduce's fusion 40 ms of
     the 82 before (the profiler's figures). Longer axes keep ``jnp.sum``."""
     n = x.shape[-1]
     if n == 0 or n > _SHORT_SUM:

@@ -106,7 +106,10 @@ def _quest_newton(k: Array, lam0: Array) -> Array:
     (the profiler's figures); ``quest`` took 95-99 ms before and 36 ms after (one core, least of
     7). Float32 skips Newton (see :func:`_quest_eigenpair`)."""
     e = [[k[..., i, j] for j in range(4)] for i in range(4)]
-    k2 = [[sum(e[i][m] * e[m][j] for m in range(1, 4)) + e[i][0] * e[0][j] for j in range(4)] for i in range(4)]
+    k2 = [
+        [e[i][0] * e[0][j] + e[i][1] * e[1][j] + e[i][2] * e[2][j] + e[i][3] * e[3][j] for j in range(4)]
+        for i in range(4)
+    ]
     a = 0.5 * (k2[0][0] + k2[1][1] + k2[2][2] + k2[3][3])
     b = sum(k2[i][j] * e[j][i] for i in range(4) for j in range(4)) / 3.0
     adj = _adjugate(k)
