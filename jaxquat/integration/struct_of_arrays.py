@@ -238,11 +238,12 @@ class EulerEquations:
             return self.acceleration(w, None)
         q_loop, w_loop = _paired(_fusion.one_loop_both_ways, q, w)
         dtype = jnp.result_type(w[0])  # the torque in the state's dtype, as diffrax's terms
-        if self.columns:
+        if self.columns:  # components stacked along the first axis, the torque's split by rows
             tau = jnp.asarray(self.torque(t, jnp.stack(q_loop), jnp.stack(w_loop), args), dtype)
-            return self.acceleration(w, _fusion.one_loop_both_ways(tuple(tau[i] for i in range(tau.shape[0]))))
-        tau = self.torque(t, stack(q_loop), stack(w_loop), args)
-        return self.acceleration(w, _fusion.one_loop_both_ways(split(jnp.asarray(tau, dtype))))
+            parts = tuple(tau[i] for i in range(tau.shape[0]))
+        else:
+            parts = split(jnp.asarray(self.torque(t, stack(q_loop), stack(w_loop), args), dtype))
+        return self.acceleration(w, _fusion.one_loop_both_ways(parts))
 
 
 def columns_by_products(x: Array) -> Comps:
