@@ -277,9 +277,10 @@ def hat(v: Array) -> Array:
 
 
 def matvec(m: Array, v: Array) -> Array:
-    """``m @ v`` for stacks of 3x3 matrices, written out per component: XLA fuses it, while a
-    ``sum`` over the minor axis of size 3 compiles to a slow reduction loop on CPU (measured 20x)."""
-    return jnp.stack([dot(m[..., i, :], v) for i in range(3)], axis=-1)
+    """``m @ v`` for stacks of small matrices (3x3, 4x4), written out per component: XLA fuses it,
+    while a ``sum`` over the minor axis of size 3 compiles to a slow reduction loop on CPU
+    (measured 20x)."""
+    return jnp.stack([dot(m[..., i, :], v) for i in range(m.shape[-2])], axis=-1)
 
 
 def vee(m: Array) -> Array:

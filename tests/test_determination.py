@@ -257,3 +257,12 @@ def test_quest_s_small_solve_is_numpy_s():
     assert np.all(np.abs(got - want).max(-1) < 8 * eps * scale)  # measured 0.68 (float64), 0.42 (float32)
     batch = jax.jit(_solve)(jnp.asarray(m_[:6].reshape(2, 3, 4, 4), DTYPE), jnp.asarray(b_[:6].reshape(2, 3, 4), DTYPE))
     assert batch.shape == (2, 3, 4)
+
+
+def test_quest_s_value_has_no_matrix_product():
+    """``quest``'s Rayleigh quotients and the rest of its value are written out on the entries: its
+    jaxpr holds no ``dot_general`` (an ``einsum`` there ran a batched 4x4 product per quotient on
+    CPU, ``docs/benchmarks.md``). The gradient keeps its ``einsum``s (written out, they were
+    slower). The values themselves are checked against scipy and ``eigh`` above."""
+    b = jnp.ones((8, 10, 3), DTYPE)
+    assert "dot_general" not in str(jax.make_jaxpr(lambda r, b: jq.quest(b, r))(b, b))
