@@ -234,6 +234,18 @@ def outer_sum(a: Array, b: Array | None = None, weights: Array | None = None) ->
     if work != dtype:
         wide = None if weights is None else weights.astype(work)
         return outer_sum(a.astype(work), None if symmetric else b.astype(work), wide).astype(dtype)
+    rows = outer_sum_entries(a, None if symmetric else b, weights)
+    return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
+
+
+def outer_sum_entries(a: Array, b: Array | None = None, weights: Array | None = None) -> list[list[Array]]:
+    """:func:`outer_sum`'s entries as nested lists of arrays ``(...)``, not stacked (inputs of one
+    dtype, at least single precision): for a caller that computes on the entries, whose cotangents
+    then reach the sums as they are, where taking them from the stacked matrix transposed each
+    slice into a pad that XLA on CPU fused with the whole backward computation once per entry
+    (``attitude_covariance``'s gradient at 10^5 problems of 5 vectors, float32: 46 -> 16 ms)."""
+    symmetric = b is None
+    b = a if b is None else b
     m, k = a.shape[-1], b.shape[-1]
     parts = components(a) if symmetric else components(a) + components(b)
     left, right = parts[:m], parts[-k:]
@@ -241,8 +253,7 @@ def outer_sum(a: Array, b: Array | None = None, weights: Array | None = None) ->
         left = [weights * x for x in left]
     pairs = [(i, j) for i in range(m) for j in range(i if symmetric else 0, k)]
     sums = dict(zip(pairs, _fusion.sums([left[i] * right[j] for i, j in pairs], -1)))
-    rows = [[sums[(i, j) if (i, j) in sums else (j, i)] for j in range(k)] for i in range(m)]
-    return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
+    return [[sums[(i, j) if (i, j) in sums else (j, i)] for j in range(k)] for i in range(m)]
 
 
 def dot(a: Array, b: Array) -> Array:
