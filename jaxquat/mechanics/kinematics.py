@@ -101,7 +101,7 @@ def omega_from_qdot(
     """
     frame = _checks.frame(frame)
     q, qdot = _checks.arguments(q=(q, "quaternion"), qdot=(qdot, "quaternion"))
-    return _arrays.compiled(_rates.omega_from_qdot, q, qdot, frame=frame)
+    return _arrays.compiled(_rates.omega_from_qdot_by_components, q, qdot, frame=frame)
 
 
 def qddot_from_alpha(
@@ -126,7 +126,7 @@ def qddot_from_alpha(
     """
     frame = _checks.frame(frame)
     q, qdot, alpha = _checks.arguments(q=(q, "quaternion"), qdot=(qdot, "quaternion"), alpha=(alpha, "vector"))
-    return _arrays.compiled(_rates.qddot_from_alpha, q, qdot, alpha, frame=frame)
+    return _arrays.compiled(_rates.qddot_from_alpha_by_components, q, qdot, alpha, frame=frame)
 
 
 def alpha_from_qddot(
@@ -149,7 +149,7 @@ def alpha_from_qddot(
     """
     frame = _checks.frame(frame)
     q, qdot, qddot = _checks.arguments(q=(q, "quaternion"), qdot=(qdot, "quaternion"), qddot=(qddot, "quaternion"))
-    return _arrays.compiled(_rates.alpha_from_qddot, q, qdot, qddot, frame=frame)
+    return _arrays.compiled(_rates.alpha_from_qddot_by_components, q, qdot, qddot, frame=frame)
 
 
 def matrix_rate(
