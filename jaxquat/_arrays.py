@@ -59,6 +59,13 @@ def per_row(s: Array, k: int) -> Array:
     return jnp.stack([s] * k, axis=-1)
 
 
+def stack_in_one_loop(parts: list[Array]) -> Array:
+    """``parts`` (broadcast to one shape) stacked along a new last axis after one loop computes them
+    all (:func:`jaxquat._fusion.one_loop`): stacked as they are, XLA on CPU evaluates the work they
+    share once per component. For kernels written on components."""
+    return jnp.stack(_fusion.one_loop(jnp.broadcast_arrays(*parts)), axis=-1)
+
+
 def components(x: Array) -> list[Array]:
     """The components ``x[..., i]`` of ``x`` as separate arrays (one ``jnp.split``), for kernels
     written on components and assembled by :func:`assemble`.

@@ -13,7 +13,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jax import Array
 
-from . import _arrays, _fusion, _quaternion
+from . import _arrays, _quaternion
 
 
 def vec_rate(q: Array, qdot: Array, frame: str) -> Array:
@@ -63,11 +63,6 @@ def _vec_rate_parts(qc: list[Array], dc: list[Array], frame: str) -> list[Array]
     return prod[1:]
 
 
-def _stacked(parts: list[Array]) -> Array:
-    """The components stacked after one loop computes them all (:mod:`jaxquat._fusion`)."""
-    return jnp.stack(_fusion.one_loop(jnp.broadcast_arrays(*parts)), axis=-1)
-
-
 def _dot(a: list[Array], b: list[Array]) -> Array:
     """``a . b`` for vectors given as components."""
     total = a[0] * b[0]
@@ -93,7 +88,7 @@ def omega_from_qdot_by_components(q: Array, qdot: Array, frame: str) -> Array:
     """:func:`omega_from_qdot` on components."""
     qc, dc = _arrays.components(q), _arrays.components(qdot)
     scale = 2.0 / _dot(qc, qc)
-    return _stacked([scale * r for r in _vec_rate_parts(qc, dc, frame)])
+    return _arrays.stack_in_one_loop([scale * r for r in _vec_rate_parts(qc, dc, frame)])
 
 
 def qddot_from_alpha_by_components(q: Array, qdot: Array, alpha: Array, frame: str) -> Array:
@@ -107,7 +102,7 @@ def qddot_from_alpha_by_components(q: Array, qdot: Array, alpha: Array, frame: s
     s = [-_dot(dc, dc)] + [half * a + lift * r for a, r in zip(ac, rate)]
     out = _quaternion.multiply_dense(qc, s) if frame == "body" else _quaternion.multiply_dense(s, qc)
     inv = 1.0 / nsq
-    return _stacked([x * inv for x in out])
+    return _arrays.stack_in_one_loop([x * inv for x in out])
 
 
 def alpha_from_qddot_by_components(q: Array, qdot: Array, qddot: Array, frame: str) -> Array:
@@ -117,7 +112,7 @@ def alpha_from_qddot_by_components(q: Array, qdot: Array, qddot: Array, frame: s
     acc = _vec_rate_parts(qc, ddc, frame)
     rate = _vec_rate_parts(qc, dc, frame)
     a_scale, r_scale = 2.0 / nsq, 4.0 * _dot(qc, dc) / (nsq * nsq)
-    return _stacked([a_scale * a - r_scale * r for a, r in zip(acc, rate)])
+    return _arrays.stack_in_one_loop([a_scale * a - r_scale * r for a, r in zip(acc, rate)])
 
 
 def to_body(q: Array, v: Array, frame: str) -> Array:

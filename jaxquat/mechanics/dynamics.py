@@ -80,8 +80,55 @@ def angular_momentum(
 
 
 def _angular_momentum(q: Array, omega: Array, inertia: Array, frame: str) -> Array:
-    h = _arrays.matvec(inertia, _rates.to_body(q, omega, frame))
-    return _rates.from_body(q, h, frame)
+    qc, w = _arrays.components(q), _arrays.components(omega)
+    w = w if frame == "body" else _rotate_parts(qc, w, inverse=True)
+    h = _matvec_parts(_entries(inertia), w)
+    return _arrays.stack_in_one_loop(h if frame == "body" else _rotate_parts(qc, h, inverse=False))
+
+
+# angular_momentum and angular_acceleration are written on components (jaxquat._arrays.components
+# in, one loop and a stack out). On rows each stage stacked a vector that the next one sliced
+# again (the frame change, I w, the cross product, the solve), and reverse mode turned the slices
+# into pads that XLA on CPU fused with the backward computation once per component. 10^5 rows,
+# one core, least of 7, the gradient of sum(f * W) in q (space frame), rows -> components:
+# angular_momentum float32 0.67 -> 0.26 ms, gradient 3.2 -> 0.22 ms, float64 5.7 -> 0.5 ms;
+# angular_acceleration float32 4.7 -> 0.36 ms, float64 29.8 -> 0.9 ms; its gradient in the
+# inertia 5.2 -> 2.6 and 6.4 -> 2.9 ms (the entries taken by components: sliced, 7.5 and 8.3).
+
+
+def _rotate_parts(qc: list[Array], v: list[Array], inverse: bool) -> list[Array]:
+    """``v`` rotated by ``q`` (or by ``q*``), on components: ``v + w t + u x t``, ``t = 2 u x v``."""
+    w, u = qc[0], qc[1:] if not inverse else [-x for x in qc[1:]]
+    t = [2.0 * x for x in _cross_parts(u, v)]
+    ut = _cross_parts(u, t)
+    return [a + w * b + c for a, b, c in zip(v, t, ut)]
+
+
+def _cross_parts(a: list[Array], b: list[Array]) -> list[Array]:
+    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+
+
+def _entries(m: Array) -> list[list[Array]]:
+    """The nine entries of ``m`` ``(..., 3, 3)`` as components (their cotangents gathered by
+    :func:`jaxquat._arrays.components`, not pads of slices)."""
+    flat = _arrays.components(m.reshape(m.shape[:-2] + (9,)))
+    return [flat[3 * i : 3 * i + 3] for i in range(3)]
+
+
+def _matvec_parts(m: list[list[Array]], v: list[Array]) -> list[Array]:
+    """``m v`` for ``m``'s entries and ``v`` given as components."""
+    return [r[0] * v[0] + r[1] * v[1] + r[2] * v[2] for r in m]
+
+
+def _solve_parts(m: list[list[Array]], b: list[Array]) -> list[Array]:
+    """``m^-1 b`` for symmetric ``m`` (its entries) by its cofactors, as
+    :func:`jaxquat._arrays.symmetric_solve`."""
+    (m00, m01, m02), (_, m11, m12), (_, _, m22) = m
+    c00, c01, c02 = m11 * m22 - m12 * m12, m02 * m12 - m01 * m22, m01 * m12 - m02 * m11
+    c11, c12, c22 = m00 * m22 - m02 * m02, m01 * m02 - m00 * m12, m00 * m11 - m01 * m01
+    det = m00 * c00 + m01 * c01 + m02 * c02
+    rows = ((c00, c01, c02), (c01, c11, c12), (c02, c12, c22))
+    return [(r[0] * b[0] + r[1] * b[1] + r[2] * b[2]) / det for r in rows]
 
 
 def kinetic_energy(
@@ -127,9 +174,13 @@ def angular_acceleration(
 
 
 def _angular_acceleration(q: Array, omega: Array, torque: Array | None, inertia: Array, frame: str) -> Array:
-    w = _rates.to_body(q, omega, frame)
-    m = _rates.to_body(q, _torque_or_zero(torque, omega), frame)
-    return _rates.from_body(q, _rates.euler_body(inertia, w, m), frame)
+    qc, w, m = _arrays.components(q), _arrays.components(omega), _arrays.components(_torque_or_zero(torque, omega))
+    if frame != "body":
+        w, m = _rotate_parts(qc, w, inverse=True), _rotate_parts(qc, m, inverse=True)
+    entries = _entries(inertia)
+    gyro = _cross_parts(w, _matvec_parts(entries, w))
+    a = _solve_parts(entries, [x - g for x, g in zip(m, gyro)])
+    return _arrays.stack_in_one_loop(a if frame == "body" else _rotate_parts(qc, a, inverse=False))
 
 
 def inverse_dynamics(
