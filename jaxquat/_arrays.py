@@ -325,8 +325,14 @@ def symmetric_solve(inertia: Array, b: Array) -> Array:
     Each component is divided by the determinant before the stack, so a shared tensor ``(3, 3)``
     meets a batch ``b`` ``(n, 3)`` without a rank promotion (``det[..., None]`` had rank 1, which
     ``jax_numpy_rank_promotion="raise"`` refused); the same values."""
-    m00, m01, m02 = inertia[..., 0, 0], inertia[..., 0, 1], inertia[..., 0, 2]
-    m11, m12, m22 = inertia[..., 1, 1], inertia[..., 1, 2], inertia[..., 2, 2]
+    upper = [inertia[..., i, j] for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))]
+    return jnp.stack(symmetric_solve_parts(upper, [b[..., 0], b[..., 1], b[..., 2]]), -1)
+
+
+def symmetric_solve_parts(upper: list[Array], b: list[Array]) -> list[Array]:
+    """:func:`symmetric_solve` on components: ``upper`` the entries ``m00, m01, m02, m11, m12,
+    m22``, ``b`` three arrays; returns three."""
+    m00, m01, m02, m11, m12, m22 = upper
     c00 = m11 * m22 - m12 * m12
     c01 = m02 * m12 - m01 * m22
     c02 = m01 * m12 - m02 * m11
@@ -334,15 +340,12 @@ def symmetric_solve(inertia: Array, b: Array) -> Array:
     c12 = m01 * m02 - m00 * m12
     c22 = m00 * m11 - m01 * m01
     det = m00 * c00 + m01 * c01 + m02 * c02
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return jnp.stack(
-        [
-            (c00 * b0 + c01 * b1 + c02 * b2) / det,
-            (c01 * b0 + c11 * b1 + c12 * b2) / det,
-            (c02 * b0 + c12 * b1 + c22 * b2) / det,
-        ],
-        -1,
-    )
+    b0, b1, b2 = b
+    return [
+        (c00 * b0 + c01 * b1 + c02 * b2) / det,
+        (c01 * b0 + c11 * b1 + c12 * b2) / det,
+        (c02 * b0 + c12 * b1 + c22 * b2) / det,
+    ]
 
 
 def symmetric_inverse(inertia: Array) -> Array:

@@ -120,17 +120,6 @@ def _matvec_parts(m: list[list[Array]], v: list[Array]) -> list[Array]:
     return [r[0] * v[0] + r[1] * v[1] + r[2] * v[2] for r in m]
 
 
-def _solve_parts(m: list[list[Array]], b: list[Array]) -> list[Array]:
-    """``m^-1 b`` for symmetric ``m`` (its entries) by its cofactors, as
-    :func:`jaxquat._arrays.symmetric_solve`."""
-    (m00, m01, m02), (_, m11, m12), (_, _, m22) = m
-    c00, c01, c02 = m11 * m22 - m12 * m12, m02 * m12 - m01 * m22, m01 * m12 - m02 * m11
-    c11, c12, c22 = m00 * m22 - m02 * m02, m01 * m02 - m00 * m12, m00 * m11 - m01 * m01
-    det = m00 * c00 + m01 * c01 + m02 * c02
-    rows = ((c00, c01, c02), (c01, c11, c12), (c02, c12, c22))
-    return [(r[0] * b[0] + r[1] * b[1] + r[2] * b[2]) / det for r in rows]
-
-
 def kinetic_energy(
     q: Float[ArrayLike, "*#batch 4"],
     omega: Float[ArrayLike, "*#batch 3"],
@@ -179,7 +168,8 @@ def _angular_acceleration(q: Array, omega: Array, torque: Array | None, inertia:
         w, m = _rotate_parts(qc, w, inverse=True), _rotate_parts(qc, m, inverse=True)
     entries = _entries(inertia)
     gyro = _cross_parts(w, _matvec_parts(entries, w))
-    a = _solve_parts(entries, [x - g for x, g in zip(m, gyro)])
+    upper = [entries[i][j] for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))]
+    a = _arrays.symmetric_solve_parts(upper, [x - g for x, g in zip(m, gyro)])
     return _arrays.stack_in_one_loop(a if frame == "body" else _rotate_parts(qc, a, inverse=False))
 
 
