@@ -133,22 +133,22 @@ def conjugate(q: Array) -> Array:
 
 def rotate(q: Array, v: Array) -> Array:
     """``v + 2 w (u x v) + 2 u x (u x v)`` for ``q = (w, u)``: the rotation of ``v`` by unit ``q``."""
-    w = q[..., 0]
-    u = q[..., 1:]
-    ux, uy, uz = u[..., 0], u[..., 1], u[..., 2]
-    vx, vy, vz = v[..., 0], v[..., 1], v[..., 2]
+    return jnp.stack(rotate_components(split(q), (v[..., 0], v[..., 1], v[..., 2])), axis=-1)
+
+
+def rotate_components(q: Sequence[Array], v: Sequence[Array]) -> list[Array]:
+    """:func:`rotate` on components (four arrays and three)."""
+    w, ux, uy, uz = q
+    vx, vy, vz = v
     # t = 2 u x v ;  v' = v + w t + u x t
     tx = 2.0 * (uy * vz - uz * vy)
     ty = 2.0 * (uz * vx - ux * vz)
     tz = 2.0 * (ux * vy - uy * vx)
-    return jnp.stack(
-        [
-            vx + w * tx + (uy * tz - uz * ty),
-            vy + w * ty + (uz * tx - ux * tz),
-            vz + w * tz + (ux * ty - uy * tx),
-        ],
-        axis=-1,
-    )
+    return [
+        vx + w * tx + (uy * tz - uz * ty),
+        vy + w * ty + (uz * tx - ux * tz),
+        vz + w * tz + (ux * ty - uy * tx),
+    ]
 
 
 def canonical_sign(w, x, y, z) -> Array:

@@ -97,11 +97,8 @@ def _angular_momentum(q: Array, omega: Array, inertia: Array, frame: str) -> Arr
 
 
 def _rotate_parts(qc: list[Array], v: list[Array], inverse: bool) -> list[Array]:
-    """``v`` rotated by ``q`` (or by ``q*``), on components: ``v + w t + u x t``, ``t = 2 u x v``."""
-    w, u = qc[0], qc[1:] if not inverse else [-x for x in qc[1:]]
-    t = [2.0 * x for x in _cross_parts(u, v)]
-    ut = _cross_parts(u, t)
-    return [a + w * b + c for a, b, c in zip(v, t, ut)]
+    """``v`` rotated by ``q`` (or by ``q*``), on components."""
+    return _quaternion.rotate_components([qc[0], -qc[1], -qc[2], -qc[3]] if inverse else qc, v)
 
 
 def _cross_parts(a: list[Array], b: list[Array]) -> list[Array]:
