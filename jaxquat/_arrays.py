@@ -332,6 +332,25 @@ def symmetric_solve(inertia: Array, b: Array) -> Array:
 def symmetric_solve_parts(upper: list[Array], b: list[Array]) -> list[Array]:
     """:func:`symmetric_solve` on components: ``upper`` the entries ``m00, m01, m02, m11, m12,
     m22``, ``b`` three arrays; returns three."""
+    (c00, c01, c02), (_, c11, c12), (_, _, c22), det = _symmetric_cofactors(upper)
+    b0, b1, b2 = b
+    return [
+        (c00 * b0 + c01 * b1 + c02 * b2) / det,
+        (c01 * b0 + c11 * b1 + c12 * b2) / det,
+        (c02 * b0 + c12 * b1 + c22 * b2) / det,
+    ]
+
+
+def symmetric_inverse_parts(upper: list[Array]) -> list[list[Array]]:
+    """The entries of ``m^-1`` (rows of three arrays) for symmetric ``m`` given by ``upper`` (as
+    :func:`symmetric_solve_parts`), by its cofactors."""
+    *rows, det = _symmetric_cofactors(upper)
+    full = [[rows[min(i, j)][max(i, j)] for j in range(3)] for i in range(3)]
+    return [[c / det for c in r] for r in full]
+
+
+def _symmetric_cofactors(upper: list[Array]):
+    """The cofactors of a symmetric 3x3 ``m`` (rows, the upper triangle filled) and its determinant."""
     m00, m01, m02, m11, m12, m22 = upper
     c00 = m11 * m22 - m12 * m12
     c01 = m02 * m12 - m01 * m22
@@ -340,12 +359,7 @@ def symmetric_solve_parts(upper: list[Array], b: list[Array]) -> list[Array]:
     c12 = m01 * m02 - m00 * m12
     c22 = m00 * m11 - m01 * m01
     det = m00 * c00 + m01 * c01 + m02 * c02
-    b0, b1, b2 = b
-    return [
-        (c00 * b0 + c01 * b1 + c02 * b2) / det,
-        (c01 * b0 + c11 * b1 + c12 * b2) / det,
-        (c02 * b0 + c12 * b1 + c22 * b2) / det,
-    ]
+    return (c00, c01, c02), (c01, c11, c12), (c02, c12, c22), det
 
 
 def symmetric_inverse(inertia: Array) -> Array:

@@ -284,27 +284,18 @@ def attitude_covariance(
 def _attitude_covariance(b: Array, s: Array) -> Array:
     """``F^-1`` with ``F = sum_n w_n (I - u_n u_n^T) = (sum_n w_n) I - S``, ``w_n = 1/s_n^2`` and
     ``S = sum_n w_n u_n u_n^T`` (:func:`jaxquat._arrays.outer_sum`'s one-loop sums), inverted by
-    its cofactors written out. As an ``einsum`` over a ``(..., n, 3, 3)`` stack and
-    ``jnp.linalg.inv`` (an LU per matrix), until session 52: 10^5 problems of 5 vectors (one core,
-    least of 7; the gradient of ``sum(P * W)`` in the vectors): float32 24 -> 1.0 ms, gradient 90
-    -> 16 ms; float64 40 -> 2.0 ms, 119 -> 45 ms."""
+    its cofactors (:func:`jaxquat._arrays.symmetric_inverse_parts`). As an ``einsum`` over a
+    ``(..., n, 3, 3)`` stack and ``jnp.linalg.inv`` (an LU per matrix), until session 52: 10^5
+    problems of 5 vectors (one core, least of 7; the gradient of ``sum(P * W)`` in the vectors):
+    float32 24 -> 1.0 ms, gradient 90 -> 16 ms; float64 40 -> 2.0 ms, 119 -> 45 ms."""
     u = _unit(b)
     work = _checks.working_dtype(b.dtype)
     u, s = u.astype(work), s.astype(work)
     w = 1.0 / (s * s)
     outer = _arrays.outer_sum_entries(u, None, w)
     total = _arrays.sum_last(w)
-    f = [[(total if i == j else 0.0) - outer[i][j] for j in range(3)] for i in range(3)]
-    cof = [
-        [
-            f[(i + 1) % 3][(j + 1) % 3] * f[(i + 2) % 3][(j + 2) % 3]
-            - f[(i + 1) % 3][(j + 2) % 3] * f[(i + 2) % 3][(j + 1) % 3]
-            for j in range(3)
-        ]
-        for i in range(3)
-    ]
-    det = f[0][0] * cof[0][0] + f[0][1] * cof[0][1] + f[0][2] * cof[0][2]
-    rows = [[cof[j][i] / det for j in range(3)] for i in range(3)]
+    upper = [(total if i == j else 0.0) - outer[i][j] for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))]
+    rows = _arrays.symmetric_inverse_parts(upper)
     return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2).astype(b.dtype)
 
 
