@@ -10,6 +10,8 @@ names: the module is private to the package (see :mod:`jaxquat._quaternion`).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import jax.numpy as jnp
 from jax import Array
 
@@ -63,7 +65,7 @@ def _vec_rate_parts(qc: list[Array], dc: list[Array], frame: str) -> list[Array]
     return prod[1:]
 
 
-def _dot(a: list[Array], b: list[Array]) -> Array:
+def dot_parts(a: list[Array], b: list[Array]) -> Array:
     """``a . b`` for vectors given as components."""
     total = a[0] * b[0]
     for x, y in zip(a[1:], b[1:]):
@@ -78,41 +80,100 @@ def _dot(a: list[Array], b: list[Array]) -> Array:
 # with the backward computation once per component. 10^5 rows, one core, least of 7, the gradient
 # of sum(f * W) in q (body frame), rows -> components: omega_from_qdot float32 2.1 -> 0.15 ms,
 # float64 3.5 -> 0.34 ms; qddot_from_alpha 10.2 -> 0.34 ms and 33-39 -> 0.77 ms; alpha_from_qddot
-# 3.2 -> 0.37 ms and 6.3-7.2 -> 1.1 ms; the values 0.09-0.48 ms either way. The vector fields and
-# the dynamics keep the row kernels above: their consumers take the result's components again,
-# and with these kernels under them float64 gradients in qdot got slower
-# (euler_parameter_acceleration 3.8 -> 19.7 ms, norm_constraint_multiplier 0.9 -> 14.6 ms).
+# 3.2 -> 0.37 ms and 6.3-7.2 -> 1.1 ms; the values 0.09-0.48 ms either way. The vector fields keep
+# the row kernels above. The dynamics (jaxquat.mechanics.dynamics, the gravity-gradient torque)
+# are written on components end to end with the *_parts functions below: swapping in only the
+# stacked kernels made their float64 gradients in qdot slower (euler_parameter_acceleration 3.8
+# -> 19.7 ms, norm_constraint_multiplier 0.9 -> 14.6 ms), since each consumer took the stacked
+# result's components again.
+
+
+def omega_parts(qc: list[Array], dc: list[Array], frame: str) -> list[Array]:
+    """:func:`omega_from_qdot` on components (four arrays each in, three out)."""
+    scale = 2.0 / dot_parts(qc, qc)
+    return [scale * r for r in _vec_rate_parts(qc, dc, frame)]
+
+
+def qddot_parts(qc: list[Array], dc: list[Array], ac: list[Array], frame: str) -> list[Array]:
+    """:func:`qddot_from_alpha` on components."""
+    nsq = dot_parts(qc, qc)
+    rate = _vec_rate_parts(qc, dc, frame)
+    # s = q* qddot (body) or qddot q* (space), solved from the alpha relation;
+    # its scalar part q.qddot = -|qdot|^2 keeps d^2|q|^2/dt^2 = 0.
+    half, lift = 0.5 * nsq, 2.0 * dot_parts(qc, dc) / nsq
+    s = [-dot_parts(dc, dc)] + [half * a + lift * r for a, r in zip(ac, rate)]
+    out = _quaternion.multiply_dense(qc, s) if frame == "body" else _quaternion.multiply_dense(s, qc)
+    inv = 1.0 / nsq
+    return [x * inv for x in out]
+
+
+def alpha_parts(qc: list[Array], dc: list[Array], ddc: list[Array], frame: str) -> list[Array]:
+    """:func:`alpha_from_qddot` on components."""
+    nsq = dot_parts(qc, qc)
+    acc = _vec_rate_parts(qc, ddc, frame)
+    rate = _vec_rate_parts(qc, dc, frame)
+    a_scale, r_scale = 2.0 / nsq, 4.0 * dot_parts(qc, dc) / (nsq * nsq)
+    return [a_scale * a - r_scale * r for a, r in zip(acc, rate)]
 
 
 def omega_from_qdot_by_components(q: Array, qdot: Array, frame: str) -> Array:
     """:func:`omega_from_qdot` on components."""
     qc, dc = _arrays.components(q), _arrays.components(qdot)
-    scale = 2.0 / _dot(qc, qc)
-    return _arrays.stack_in_one_loop([scale * r for r in _vec_rate_parts(qc, dc, frame)])
+    return _arrays.stack_in_one_loop(omega_parts(qc, dc, frame))
 
 
 def qddot_from_alpha_by_components(q: Array, qdot: Array, alpha: Array, frame: str) -> Array:
     """:func:`qddot_from_alpha` on components."""
     qc, dc, ac = _arrays.components(q), _arrays.components(qdot), _arrays.components(alpha)
-    nsq = _dot(qc, qc)
-    rate = _vec_rate_parts(qc, dc, frame)
-    # s = q* qddot (body) or qddot q* (space), solved from the alpha relation;
-    # its scalar part q.qddot = -|qdot|^2 keeps d^2|q|^2/dt^2 = 0.
-    half, lift = 0.5 * nsq, 2.0 * _dot(qc, dc) / nsq
-    s = [-_dot(dc, dc)] + [half * a + lift * r for a, r in zip(ac, rate)]
-    out = _quaternion.multiply_dense(qc, s) if frame == "body" else _quaternion.multiply_dense(s, qc)
-    inv = 1.0 / nsq
-    return _arrays.stack_in_one_loop([x * inv for x in out])
+    return _arrays.stack_in_one_loop(qddot_parts(qc, dc, ac, frame))
 
 
 def alpha_from_qddot_by_components(q: Array, qdot: Array, qddot: Array, frame: str) -> Array:
     """:func:`alpha_from_qddot` on components."""
     qc, dc, ddc = _arrays.components(q), _arrays.components(qdot), _arrays.components(qddot)
-    nsq = _dot(qc, qc)
-    acc = _vec_rate_parts(qc, ddc, frame)
-    rate = _vec_rate_parts(qc, dc, frame)
-    a_scale, r_scale = 2.0 / nsq, 4.0 * _dot(qc, dc) / (nsq * nsq)
-    return _arrays.stack_in_one_loop([a_scale * a - r_scale * r for a, r in zip(acc, rate)])
+    return _arrays.stack_in_one_loop(alpha_parts(qc, dc, ddc, frame))
+
+
+# Euler's equations and frame changes on components, for the dynamics written on components
+# (jaxquat.mechanics.dynamics, jaxquat.mechanics.torques).
+
+
+def rotate_parts(qc: list[Array], v: list[Array], inverse: bool) -> list[Array]:
+    """``v`` rotated by ``q`` (or by ``q*``: into the body frame), on components (unit ``q``)."""
+    return _quaternion.rotate_components([qc[0], -qc[1], -qc[2], -qc[3]] if inverse else qc, v)
+
+
+def cross_parts(a: Sequence[Array], b: Sequence[Array]) -> list[Array]:
+    """``a x b`` on components."""
+    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+
+
+def matrix_entries(m: Array) -> list[list[Array]]:
+    """The nine entries of ``m`` ``(..., 3, 3)`` as components (their cotangents gathered by
+    :func:`jaxquat._arrays.components`, not pads of slices: ``angular_acceleration``'s gradient in
+    the inertia at 10^5, one core, float32 / float64, 2.6 / 2.9 ms, against 7.5 / 8.3 ms sliced)."""
+    flat = _arrays.components(m.reshape(m.shape[:-2] + (9,)))
+    return [flat[3 * i : 3 * i + 3] for i in range(3)]
+
+
+def matvec_parts(m: list[list[Array]], v: list[Array]) -> list[Array]:
+    """``m v`` for ``m``'s entries and ``v`` given as components."""
+    return [r[0] * v[0] + r[1] * v[1] + r[2] * v[2] for r in m]
+
+
+def euler_body_parts(entries: list[list[Array]], w: list[Array], torque: list[Array] | None) -> list[Array]:
+    """:func:`euler_body` on components: ``I^-1 (M - w x I w)`` for the inertia's entries (symmetric),
+    ``torque`` None for torque-free motion."""
+    gyro = cross_parts(w, matvec_parts(entries, w))
+    rhs = [-g for g in gyro] if torque is None else [x - g for x, g in zip(torque, gyro)]
+    upper = [entries[i][j] for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))]
+    return _arrays.symmetric_solve_parts(upper, rhs)
+
+
+def euler_torque_parts(entries: list[list[Array]], w: list[Array], alpha: list[Array]) -> list[Array]:
+    """Euler's equations solved for the torque, ``I a + w x I w``, on components (body frame)."""
+    gyro = cross_parts(w, matvec_parts(entries, w))
+    return [x + g for x, g in zip(matvec_parts(entries, alpha), gyro)]
 
 
 def to_body(q: Array, v: Array, frame: str) -> Array:

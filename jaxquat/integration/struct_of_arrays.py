@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .. import _arrays, _fusion, _quaternion, _rotation, _safe, _trig
+from .. import _arrays, _fusion, _quaternion, _rates, _rotation, _safe, _trig
 from .fixed_step import scan_steps
 
 Comps = tuple[Array, ...]
@@ -94,7 +94,7 @@ def _add(a: Comps, b: Comps) -> Comps:
 
 def cross(a: Comps, b: Comps) -> Comps:
     """``a x b``."""
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+    return tuple(_rates.cross_parts(a, b))
 
 
 def multiply(p: Comps, q: Comps) -> Comps:

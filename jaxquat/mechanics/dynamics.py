@@ -55,11 +55,6 @@ def _torque_or_zero(torque, like) -> Array:
     return jnp.zeros(jnp.shape(like)[:-1] + (3,), dtype=jnp.result_type(like)) if torque is None else torque
 
 
-def _euler_torque_body(inertia: Array, w: Array, alpha: Array) -> Array:
-    """Euler's equations solved for the torque, ``I a + w x I w``, all body frame."""
-    return _arrays.matvec(inertia, alpha) + jnp.cross(w, _arrays.matvec(inertia, w))
-
-
 def angular_momentum(
     q: Float[ArrayLike, "*#batch 4"],
     omega: Float[ArrayLike, "*#batch 3"],
@@ -81,40 +76,23 @@ def angular_momentum(
 
 def _angular_momentum(q: Array, omega: Array, inertia: Array, frame: str) -> Array:
     qc, w = _arrays.components(q), _arrays.components(omega)
-    w = w if frame == "body" else _rotate_parts(qc, w, inverse=True)
-    h = _matvec_parts(_entries(inertia), w)
-    return _arrays.stack_in_one_loop(h if frame == "body" else _rotate_parts(qc, h, inverse=False))
+    h = _rates.matvec_parts(_rates.matrix_entries(inertia), _to_body_parts(qc, w, frame))
+    return _arrays.stack_in_one_loop(_from_body_parts(qc, h, frame))
 
 
-# angular_momentum and angular_acceleration are written on components (jaxquat._arrays.components
-# in, one loop and a stack out). On rows each stage stacked a vector that the next one sliced
-# again (the frame change, I w, the cross product, the solve), and reverse mode turned the slices
-# into pads that XLA on CPU fused with the backward computation once per component. 10^5 rows,
-# one core, least of 7, the gradient of sum(f * W) in q (space frame), rows -> components:
-# angular_momentum float32 0.67 -> 0.26 ms, gradient 3.2 -> 0.22 ms, float64 5.7 -> 0.5 ms;
-# angular_acceleration float32 4.7 -> 0.36 ms, float64 29.8 -> 0.9 ms; its gradient in the
-# inertia 5.2 -> 2.6 and 6.4 -> 2.9 ms (the entries taken by components: sliced, 7.5 and 8.3).
-
-
-def _rotate_parts(qc: list[Array], v: list[Array], inverse: bool) -> list[Array]:
-    """``v`` rotated by ``q`` (or by ``q*``), on components."""
-    return _quaternion.rotate_components([qc[0], -qc[1], -qc[2], -qc[3]] if inverse else qc, v)
-
-
-def _cross_parts(a: list[Array], b: list[Array]) -> list[Array]:
-    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-
-
-def _entries(m: Array) -> list[list[Array]]:
-    """The nine entries of ``m`` ``(..., 3, 3)`` as components (their cotangents gathered by
-    :func:`jaxquat._arrays.components`, not pads of slices)."""
-    flat = _arrays.components(m.reshape(m.shape[:-2] + (9,)))
-    return [flat[3 * i : 3 * i + 3] for i in range(3)]
-
-
-def _matvec_parts(m: list[list[Array]], v: list[Array]) -> list[Array]:
-    """``m v`` for ``m``'s entries and ``v`` given as components."""
-    return [r[0] * v[0] + r[1] * v[1] + r[2] * v[2] for r in m]
+# The dynamics are written on components (jaxquat._arrays.components in, one loop and a stack
+# out; the kernels are jaxquat._rates' *_parts functions). On rows each stage stacked a vector
+# that the next one sliced again (the frame change, I w, the cross product, the solve, the rate
+# relations), and reverse mode turned the slices into pads that XLA on CPU fused with the
+# backward computation once per component. 10^5 rows, one core, least of 7, the gradient of
+# sum(f * W) (tests/test_contract.py's registry, benchmarks/gradient_sweep.py), rows ->
+# components, float32 / float64 (session 52 for the first two, session 53 for the others):
+# angular_momentum in q (space) 3.2 -> 0.22 / 5.7 -> 0.5 ms; angular_acceleration in q (space)
+# 4.7 -> 0.36 / 29.8 -> 0.9 ms, in the inertia 5.2 -> 2.6 / 6.4 -> 2.9 ms;
+# euler_parameter_acceleration in q (body) 25.7 -> 1.6 / 60.4 -> 3.2 ms, in qdot (space) 3.2 ->
+# 1.0 / 11.5 -> 2.0 ms, in the inertia 8.4 -> 4.0 / 16.5 -> 5.3 ms; euler_parameter_torque 15.5
+# -> 1.4 / 30.7 -> 3.0 ms; inverse_dynamics 0.81 -> 0.33 / 1.56 -> 0.57 ms;
+# norm_constraint_multiplier 1.25 -> 0.53 / 2.42 -> 1.00 ms.
 
 
 def kinetic_energy(
@@ -160,14 +138,23 @@ def angular_acceleration(
 
 
 def _angular_acceleration(q: Array, omega: Array, torque: Array | None, inertia: Array, frame: str) -> Array:
-    qc, w, m = _arrays.components(q), _arrays.components(omega), _arrays.components(_torque_or_zero(torque, omega))
-    if frame != "body":
-        w, m = _rotate_parts(qc, w, inverse=True), _rotate_parts(qc, m, inverse=True)
-    entries = _entries(inertia)
-    gyro = _cross_parts(w, _matvec_parts(entries, w))
-    upper = [entries[i][j] for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))]
-    a = _arrays.symmetric_solve_parts(upper, [x - g for x, g in zip(m, gyro)])
-    return _arrays.stack_in_one_loop(a if frame == "body" else _rotate_parts(qc, a, inverse=False))
+    qc, w = _arrays.components(q), _arrays.components(omega)
+    m = _body_torque_parts(qc, torque, frame)
+    a = _rates.euler_body_parts(_rates.matrix_entries(inertia), _to_body_parts(qc, w, frame), m)
+    return _arrays.stack_in_one_loop(_from_body_parts(qc, a, frame))
+
+
+def _to_body_parts(qc: list[Array], v: list[Array], frame: str) -> list[Array]:
+    return v if frame == "body" else _rates.rotate_parts(qc, v, inverse=True)
+
+
+def _from_body_parts(qc: list[Array], v: list[Array], frame: str) -> list[Array]:
+    return v if frame == "body" else _rates.rotate_parts(qc, v, inverse=False)
+
+
+def _body_torque_parts(qc: list[Array], torque: Array | None, frame: str) -> list[Array] | None:
+    """The body torque's components (None: torque-free) from a torque resolved in ``frame``."""
+    return None if torque is None else _to_body_parts(qc, _arrays.components(torque), frame)
 
 
 def inverse_dynamics(
@@ -187,9 +174,11 @@ def inverse_dynamics(
 
 
 def _inverse_dynamics(q: Array, omega: Array, alpha: Array, inertia: Array, frame: str) -> Array:
-    w = _rates.to_body(q, omega, frame)
-    a = _rates.to_body(q, alpha, frame)
-    return _rates.from_body(q, _euler_torque_body(inertia, w, a), frame)
+    qc = _arrays.components(q)
+    w = _to_body_parts(qc, _arrays.components(omega), frame)
+    a = _to_body_parts(qc, _arrays.components(alpha), frame)
+    tau = _rates.euler_torque_parts(_rates.matrix_entries(inertia), w, a)
+    return _arrays.stack_in_one_loop(_from_body_parts(qc, tau, frame))
 
 
 def euler_parameter_acceleration(
@@ -222,9 +211,10 @@ def euler_parameter_acceleration(
 
 
 def _euler_parameter_acceleration(q: Array, qdot: Array, torque: Array | None, inertia: Array, frame: str) -> Array:
-    w = _rates.omega_from_qdot(q, qdot, "body")
-    a = _rates.euler_body(inertia, w, _rates.to_body(q, _torque_or_zero(torque, qdot), frame))
-    return _rates.qddot_from_alpha(q, qdot, a, "body")
+    qc, dc = _arrays.components(q), _arrays.components(qdot)
+    m = _body_torque_parts(qc, torque, frame)
+    a = _rates.euler_body_parts(_rates.matrix_entries(inertia), _rates.omega_parts(qc, dc, "body"), m)
+    return _arrays.stack_in_one_loop(_rates.qddot_parts(qc, dc, a, "body"))
 
 
 def euler_parameter_torque(
@@ -252,9 +242,10 @@ def euler_parameter_torque(
 
 
 def _euler_parameter_torque(q: Array, qdot: Array, qddot: Array, inertia: Array, frame: str) -> Array:
-    w = _rates.omega_from_qdot(q, qdot, "body")
-    a = _rates.alpha_from_qddot(q, qdot, qddot, "body")
-    return _rates.from_body(q, _euler_torque_body(inertia, w, a), frame)
+    qc, dc, ddc = _arrays.components(q), _arrays.components(qdot), _arrays.components(qddot)
+    w, a = _rates.omega_parts(qc, dc, "body"), _rates.alpha_parts(qc, dc, ddc, "body")
+    tau = _rates.euler_torque_parts(_rates.matrix_entries(inertia), w, a)
+    return _arrays.stack_in_one_loop(_from_body_parts(qc, tau, frame))
 
 
 def _quat_inertia_product(q: Array, inertia: Array) -> Array:
@@ -384,5 +375,5 @@ def norm_constraint_multiplier(
 
 
 def _norm_constraint_multiplier(q: Array, qdot: Array, inertia: Array) -> Array:
-    w = _rates.omega_from_qdot(q, qdot, "body")
-    return _arrays.dot(w, _arrays.matvec(inertia, w))
+    w = _rates.omega_parts(_arrays.components(q), _arrays.components(qdot), "body")
+    return _rates.dot_parts(w, _rates.matvec_parts(_rates.matrix_entries(inertia), w))
