@@ -265,7 +265,11 @@ def _reduce_by_dtype(xs: Sequence[Array], axis: int, init: float = 0.0) -> list[
     out = list(xs)
     for dtype in dict.fromkeys(x.dtype for x in xs):
         idx = [i for i, x in enumerate(xs) if x.dtype == dtype]
-        start = jnp.array(init, dtype)
+        # The start passes an optimization barrier: with every operand a constant (arrays a user's
+        # jit closes over), XLA would evaluate the reduce while compiling, and its size guard
+        # skips a variadic reduce (a tuple): one_loop of ten entries of 10^5 constant rows took
+        # 2.3 s to fold (4.7 s in euler_parameter_augmented_system's gradient), 0.26 s now.
+        start = lax.optimization_barrier(jnp.array(init, dtype))
         summed = lax.reduce([xs[i] for i in idx], [start] * len(idx), _add_pairs, (axis,))
         for i, y in zip(idx, summed):
             out[i] = y

@@ -58,7 +58,7 @@ def alpha_from_qddot(q: Array, qdot: Array, qddot: Array, frame: str) -> Array:
     return 2.0 * acc / nsq - 4.0 * _arrays.dot(q, qdot)[..., None] * rate / (nsq * nsq)
 
 
-def _vec_rate_parts(qc: list[Array], dc: list[Array], frame: str) -> list[Array]:
+def vec_rate_parts(qc: list[Array], dc: list[Array], frame: str) -> list[Array]:
     """:func:`vec_rate` on components (lists of four arrays)."""
     conj = [qc[0], -qc[1], -qc[2], -qc[3]]
     prod = _quaternion.multiply_dense(conj, dc) if frame == "body" else _quaternion.multiply_dense(dc, conj)
@@ -91,13 +91,13 @@ def dot_parts(a: list[Array], b: list[Array]) -> Array:
 def omega_parts(qc: list[Array], dc: list[Array], frame: str) -> list[Array]:
     """:func:`omega_from_qdot` on components (four arrays each in, three out)."""
     scale = 2.0 / dot_parts(qc, qc)
-    return [scale * r for r in _vec_rate_parts(qc, dc, frame)]
+    return [scale * r for r in vec_rate_parts(qc, dc, frame)]
 
 
 def qddot_parts(qc: list[Array], dc: list[Array], ac: list[Array], frame: str) -> list[Array]:
     """:func:`qddot_from_alpha` on components."""
     nsq = dot_parts(qc, qc)
-    rate = _vec_rate_parts(qc, dc, frame)
+    rate = vec_rate_parts(qc, dc, frame)
     # s = q* qddot (body) or qddot q* (space), solved from the alpha relation;
     # its scalar part q.qddot = -|qdot|^2 keeps d^2|q|^2/dt^2 = 0.
     half, lift = 0.5 * nsq, 2.0 * dot_parts(qc, dc) / nsq
@@ -110,8 +110,8 @@ def qddot_parts(qc: list[Array], dc: list[Array], ac: list[Array], frame: str) -
 def alpha_parts(qc: list[Array], dc: list[Array], ddc: list[Array], frame: str) -> list[Array]:
     """:func:`alpha_from_qddot` on components."""
     nsq = dot_parts(qc, qc)
-    acc = _vec_rate_parts(qc, ddc, frame)
-    rate = _vec_rate_parts(qc, dc, frame)
+    acc = vec_rate_parts(qc, ddc, frame)
+    rate = vec_rate_parts(qc, dc, frame)
     a_scale, r_scale = 2.0 / nsq, 4.0 * dot_parts(qc, dc) / (nsq * nsq)
     return [a_scale * a - r_scale * r for a, r in zip(acc, rate)]
 
@@ -146,6 +146,11 @@ def rotate_parts(qc: list[Array], v: list[Array], inverse: bool) -> list[Array]:
 def cross_parts(a: Sequence[Array], b: Sequence[Array]) -> list[Array]:
     """``a x b`` on components."""
     return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+
+
+def times_pure_parts(p: list[Array], u: list[Array]) -> list[Array]:
+    """The product ``p (0, u)`` on components: ``(-p_v . u, p_0 u + p_v x u)``."""
+    return [-dot_parts(p[1:], u)] + [p[0] * x + c for x, c in zip(u, cross_parts(p[1:], u))]
 
 
 def matrix_entries(m: Array) -> list[list[Array]]:

@@ -51,10 +51,6 @@ def _checked_with_torque(q, rate_name: str, rate, torque, inertia) -> list[Array
     )
 
 
-def _torque_or_zero(torque, like) -> Array:
-    return jnp.zeros(jnp.shape(like)[:-1] + (3,), dtype=jnp.result_type(like)) if torque is None else torque
-
-
 def angular_momentum(
     q: Float[ArrayLike, "*#batch 4"],
     omega: Float[ArrayLike, "*#batch 3"],
@@ -350,10 +346,18 @@ def euler_parameter_augmented_system(
 
 def _augmented_system(q: Array, qdot: Array, torque: Array | None, inertia: Array, frame: str) -> tuple[Array, Array]:
     mass = 4.0 * _quat_inertia_product(q, inertia)
-    gyro = 8.0 * _arrays.matmul(_quat_inertia_product(qdot, inertia), q[..., None])
-    m = _quaternion.pure(_rates.to_body(q, _torque_or_zero(torque, qdot), frame))
-    top_rhs = 2.0 * _quaternion.multiply(q, m) + gyro[..., 0]
-    rhs = jnp.concatenate([top_rhs, -2.0 * jnp.sum(qdot * qdot, -1, keepdims=True)], axis=-1)
+    # The right-hand side on components: Qdot J Qdot^T q = qdot (0, I E(qdot) q) with E(qdot) q =
+    # vec(qdot* q), and f = 2 q (0, M_b). As a batched 4x4 product of Qdot diag(0, I) Qdot^T with
+    # q (until session 53) the gradient in q at 10^5 took 3.2-5.3 ms (float32, one core), hidden
+    # in benchmarks/gradient_sweep.py until then by XLA folding the constant qdot's matrix while
+    # compiling (4.7 s).
+    qc, dc = _arrays.components(q), _arrays.components(qdot)
+    entries = _rates.matrix_entries(inertia)
+    gyro = _rates.times_pure_parts(dc, _rates.matvec_parts(entries, _rates.vec_rate_parts(dc, qc, "body")))
+    m = _body_torque_parts(qc, torque, frame)
+    force = [0.0] * 4 if m is None else _rates.times_pure_parts(qc, m)
+    top = [2.0 * f + 8.0 * g for f, g in zip(force, gyro)]
+    rhs = _arrays.stack_in_one_loop(top + [-2.0 * _rates.dot_parts(dc, dc)])
     col = 2.0 * q[..., :, None]
     upper = jnp.concatenate([mass, col], axis=-1)
     lower = jnp.concatenate([2.0 * q, jnp.zeros_like(q[..., :1])], axis=-1)[..., None, :]
