@@ -16,7 +16,7 @@ from collections.abc import Sequence
 
 import jax
 import jax.numpy as jnp
-from jax import Array
+from jax import Array, lax
 
 from . import _arrays, _derivatives, _fusion, _jacobi, _quaternion, _safe, _trig
 
@@ -400,7 +400,11 @@ def align_signs(keys: Array) -> Array:
     """Flip keys ``(..., n, 4)`` so that consecutive ones have a non-negative dot product."""
     dots = jnp.sum(keys[..., 1:, :] * keys[..., :-1, :], axis=-1)
     steps = jnp.where(dots < 0, -1.0, 1.0).astype(keys.dtype)
-    signs = jnp.concatenate([jnp.ones_like(steps[..., :1]), jnp.cumprod(steps, axis=-1)], axis=-1)
+    # The running product by lax.associative_scan (products of shifted slices), not jnp.cumprod: on
+    # CPU a reduce-window, which XLA evaluated while compiling when the keys were constants of
+    # the program (10^5 x 5 keys: 1.5 s); the same values, and 4.0 against 4.3 ms at run time.
+    ends = lax.associative_scan(jnp.multiply, steps, axis=-1)
+    signs = jnp.concatenate([jnp.ones_like(steps[..., :1]), ends], axis=-1)
     return keys * signs[..., None]
 
 
