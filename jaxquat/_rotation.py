@@ -23,16 +23,21 @@ from . import _arrays, _derivatives, _fusion, _jacobi, _quaternion, _safe, _trig
 
 def to_matrix(q: Array) -> Array:
     """``R(q) = I + 2 w [u]x + 2 [u]x^2`` for unit ``q = (w, u)``, the diagonal written with ``|q| = 1``."""
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    rows = matrix_parts([q[..., 0], q[..., 1], q[..., 2], q[..., 3]])
+    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def matrix_parts(q: Sequence[Array]) -> list[list[Array]]:
+    """:func:`to_matrix`'s rows as lists of entries, from ``q``'s four components."""
+    w, x, y, z = q
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
     wx, wy, wz = w * x, w * y, w * z
-    rows = [
+    return [
         [1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy)],
         [2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx)],
         [2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy)],
     ]
-    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
 
 
 def _k_entries(b: Array | list[Array], shift: float):
