@@ -143,6 +143,16 @@ def rotate_parts(qc: list[Array], v: list[Array], inverse: bool) -> list[Array]:
     return _quaternion.rotate_components([qc[0], -qc[1], -qc[2], -qc[3]] if inverse else qc, v)
 
 
+def to_body_parts(qc: list[Array], v: list[Array], frame: str) -> list[Array]:
+    """:func:`to_body` on components."""
+    return v if frame == "body" else rotate_parts(qc, v, inverse=True)
+
+
+def from_body_parts(qc: list[Array], v: list[Array], frame: str) -> list[Array]:
+    """:func:`from_body` on components."""
+    return v if frame == "body" else rotate_parts(qc, v, inverse=False)
+
+
 def cross_parts(a: Sequence[Array], b: Sequence[Array]) -> list[Array]:
     """``a x b`` on components."""
     return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]

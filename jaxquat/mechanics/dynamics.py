@@ -72,8 +72,8 @@ def angular_momentum(
 
 def _angular_momentum(q: Array, omega: Array, inertia: Array, frame: str) -> Array:
     qc, w = _arrays.components(q), _arrays.components(omega)
-    h = _rates.matvec_parts(_rates.matrix_entries(inertia), _to_body_parts(qc, w, frame))
-    return _arrays.stack_in_one_loop(_from_body_parts(qc, h, frame))
+    h = _rates.matvec_parts(_rates.matrix_entries(inertia), _rates.to_body_parts(qc, w, frame))
+    return _arrays.stack_in_one_loop(_rates.from_body_parts(qc, h, frame))
 
 
 # The dynamics are written on components (jaxquat._arrays.components in, one loop and a stack
@@ -136,21 +136,13 @@ def angular_acceleration(
 def _angular_acceleration(q: Array, omega: Array, torque: Array | None, inertia: Array, frame: str) -> Array:
     qc, w = _arrays.components(q), _arrays.components(omega)
     m = _body_torque_parts(qc, torque, frame)
-    a = _rates.euler_body_parts(_rates.matrix_entries(inertia), _to_body_parts(qc, w, frame), m)
-    return _arrays.stack_in_one_loop(_from_body_parts(qc, a, frame))
-
-
-def _to_body_parts(qc: list[Array], v: list[Array], frame: str) -> list[Array]:
-    return v if frame == "body" else _rates.rotate_parts(qc, v, inverse=True)
-
-
-def _from_body_parts(qc: list[Array], v: list[Array], frame: str) -> list[Array]:
-    return v if frame == "body" else _rates.rotate_parts(qc, v, inverse=False)
+    a = _rates.euler_body_parts(_rates.matrix_entries(inertia), _rates.to_body_parts(qc, w, frame), m)
+    return _arrays.stack_in_one_loop(_rates.from_body_parts(qc, a, frame))
 
 
 def _body_torque_parts(qc: list[Array], torque: Array | None, frame: str) -> list[Array] | None:
     """The body torque's components (None: torque-free) from a torque resolved in ``frame``."""
-    return None if torque is None else _to_body_parts(qc, _arrays.components(torque), frame)
+    return None if torque is None else _rates.to_body_parts(qc, _arrays.components(torque), frame)
 
 
 def inverse_dynamics(
@@ -171,10 +163,10 @@ def inverse_dynamics(
 
 def _inverse_dynamics(q: Array, omega: Array, alpha: Array, inertia: Array, frame: str) -> Array:
     qc = _arrays.components(q)
-    w = _to_body_parts(qc, _arrays.components(omega), frame)
-    a = _to_body_parts(qc, _arrays.components(alpha), frame)
+    w = _rates.to_body_parts(qc, _arrays.components(omega), frame)
+    a = _rates.to_body_parts(qc, _arrays.components(alpha), frame)
     tau = _rates.euler_torque_parts(_rates.matrix_entries(inertia), w, a)
-    return _arrays.stack_in_one_loop(_from_body_parts(qc, tau, frame))
+    return _arrays.stack_in_one_loop(_rates.from_body_parts(qc, tau, frame))
 
 
 def euler_parameter_acceleration(
@@ -241,7 +233,7 @@ def _euler_parameter_torque(q: Array, qdot: Array, qddot: Array, inertia: Array,
     qc, dc, ddc = _arrays.components(q), _arrays.components(qdot), _arrays.components(qddot)
     w, a = _rates.omega_parts(qc, dc, "body"), _rates.alpha_parts(qc, dc, ddc, "body")
     tau = _rates.euler_torque_parts(_rates.matrix_entries(inertia), w, a)
-    return _arrays.stack_in_one_loop(_from_body_parts(qc, tau, frame))
+    return _arrays.stack_in_one_loop(_rates.from_body_parts(qc, tau, frame))
 
 
 def _quat_inertia_product(q: Array, inertia: Array) -> Array:

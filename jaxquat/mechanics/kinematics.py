@@ -27,7 +27,7 @@ import jax.numpy as jnp
 from jax import Array
 from jaxtyping import ArrayLike, Float
 
-from .. import _arrays, _checks, _quaternion, _rates, _rotation
+from .. import _arrays, _checks, _rates, _rotation
 
 __all__ = [
     "rate_matrix",
@@ -217,9 +217,17 @@ def point_velocity(
 
 
 def _point_velocity(q: Array, omega: Array, r: Array, r_dot: Array | None, frame: str) -> Array:
-    w = _rates.to_body(q, omega, frame)
-    v = jnp.cross(w, r)
-    return _quaternion.rotate(q, v if r_dot is None else v + r_dot)
+    qc, rc = _arrays.components(q), _arrays.components(r)
+    v = _rates.cross_parts(_rates.to_body_parts(qc, _arrays.components(omega), frame), rc)
+    v = v if r_dot is None else [x + y for x, y in zip(v, _arrays.components(r_dot))]
+    return _arrays.stack_in_one_loop(_rates.rotate_parts(qc, v, inverse=False))
+
+
+# point_velocity and point_acceleration are written on components, as the dynamics
+# (jaxquat.mechanics.dynamics says why). Rows -> components, 10^5 points, one core, least of 7,
+# value / gradient of sum(f * W) in q: point_velocity (space frame) float32 0.96 / 3.5 -> 0.40 /
+# 0.37 ms, float64 1.9 / 7.0 -> 0.78 / 0.69 ms; point_acceleration (body frame) float32 1.7 / 0.32
+# -> 0.45 / 0.30 ms, float64 3.4 / 0.56 -> 0.86 / 0.55 ms.
 
 
 def point_acceleration(
@@ -255,7 +263,13 @@ def point_acceleration(
 def _point_acceleration(
     q: Array, omega: Array, alpha: Array, r: Array, r_dot: Array | None, r_ddot: Array | None, frame: str
 ) -> Array:
-    w, a = _rates.to_body(q, omega, frame), _rates.to_body(q, alpha, frame)
-    acc = jnp.cross(a, r) + jnp.cross(w, jnp.cross(w, r))
-    acc = acc if r_dot is None else acc + 2.0 * jnp.cross(w, r_dot)
-    return _quaternion.rotate(q, acc if r_ddot is None else acc + r_ddot)
+    qc, rc = _arrays.components(q), _arrays.components(r)
+    w = _rates.to_body_parts(qc, _arrays.components(omega), frame)
+    a = _rates.to_body_parts(qc, _arrays.components(alpha), frame)
+    cross = _rates.cross_parts
+    acc = [x + y for x, y in zip(cross(a, rc), cross(w, cross(w, rc)))]
+    if r_dot is not None:
+        acc = [x + 2.0 * y for x, y in zip(acc, cross(w, _arrays.components(r_dot)))]
+    if r_ddot is not None:
+        acc = [x + y for x, y in zip(acc, _arrays.components(r_ddot))]
+    return _arrays.stack_in_one_loop(_rates.rotate_parts(qc, acc, inverse=False))
