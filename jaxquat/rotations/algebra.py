@@ -173,7 +173,30 @@ def power(q: Float[ArrayLike, "*#batch 4"], t: Float[ArrayLike, "*#batch"] | flo
 
 
 def _power(q: Array, t: Array) -> Array:
-    return _exp(t[..., None] * _log(q))
+    # On components, exp and log written on the parts (_log_parts, _exp_parts) with the scaling
+    # between them. As _exp(t * _log(q)) on rows (until session 53), 10^5 rotations, one core,
+    # least of 7, value / gradient of sum(f * W) in q: float32 1.3 / 5.5 -> 1.4 / 1.85 ms, float64
+    # 3.2 / 11.2 -> 3.25 / 4.6 ms.
+    return _arrays.assemble(*_exp_parts([t * x for x in _log_parts(_arrays.components(q))]))
+
+
+def _log_parts(q: list[Array]) -> list[Array]:
+    """:func:`_log` on components (the public ``log`` keeps the rows: on components its value took
+    0.78 against 0.66 ms at 10^5, float32, though its gradient 1.1 against 1.8 ms)."""
+    w, v = q[0], q[1:]
+    nsq = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+    factor = _safe.atan2_over_n(nsq, w)
+    real_negative = (nsq == 0) & (w < 0)  # as _log
+    vec = [jnp.where(real_negative, c, factor * x) for c, x in zip((jnp.pi, 0.0, 0.0), v)]
+    return [0.5 * jnp.log(nsq + w * w)] + vec
+
+
+def _exp_parts(q: list[Array]) -> list[Array]:
+    """:func:`_exp` on components (the public ``exp`` keeps the rows, as ``log``)."""
+    w, v = q[0], q[1:]
+    scale = jnp.exp(w)
+    sinc, cos = _safe.sinc_cos_of_sq(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    return [scale * cos] + [(scale * sinc) * x for x in v]
 
 
 def left_matrix(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4 4"]:
