@@ -15,7 +15,7 @@ from collections.abc import Sequence
 import jax.numpy as jnp
 from jax import Array
 
-from . import _arrays, _quaternion
+from . import _arrays, _fusion, _quaternion
 
 
 def vec_rate(q: Array, qdot: Array, frame: str) -> Array:
@@ -166,8 +166,11 @@ def times_pure_parts(p: list[Array], u: list[Array]) -> list[Array]:
 def matrix_entries(m: Array) -> list[list[Array]]:
     """The nine entries of ``m`` ``(..., 3, 3)`` as components (their cotangents gathered by
     :func:`jaxquat._arrays.components`, not pads of slices: ``angular_acceleration``'s gradient in
-    the inertia at 10^5, one core, float32 / float64, 2.6 / 2.9 ms, against 7.5 / 8.3 ms sliced)."""
-    flat = _arrays.components(m.reshape(m.shape[:-2] + (9,)))
+    the inertia at 10^5, one core, float32 / float64, 2.6 / 2.9 ms, against 7.5 / 8.3 ms sliced),
+    the cotangents computed in one loop (:func:`jaxquat._fusion.one_loop_backward`; session 53,
+    the same gradient measured 3.9 -> 2.7 ms and 5.1 -> 4.4 ms, ``euler_parameter_acceleration``'s
+    in the inertia 4.0 -> 2.7 and 5.3 -> 4.3 ms)."""
+    flat = list(_fusion.one_loop_backward(_arrays.components(m.reshape(m.shape[:-2] + (9,)))))
     return [flat[3 * i : 3 * i + 3] for i in range(3)]
 
 
