@@ -117,15 +117,13 @@ def to_axis_angle(q: Float[ArrayLike, "*batch 4"]) -> tuple[Float[Array, "*batch
 
 
 def _to_axis_angle(q: Array) -> tuple[Array, Array]:
-    q = _quaternion.canonicalize(_safe.rescaled(q))
-    w = q[..., 0]
-    v = q[..., 1:]
-    n = _safe.safe_norm(v)
+    w, x, y, z = _canonical_components(q)
+    n = _safe.safe_sqrt(x * x + y * y + z * z)
     angle = 2.0 * _trig.atan2(n, w)
     zero = n == 0
-    unit = v / _arrays.per_row(jnp.where(zero, 1.0, n), 3)
-    axis = jnp.where(zero[..., None], _arrays.const_like([1.0, 0.0, 0.0], v), unit)
-    return axis, angle
+    inv = 1.0 / jnp.where(zero, 1.0, n)
+    axis = [jnp.where(zero, e, inv * c) for e, c in zip((1.0, 0.0, 0.0), (x, y, z))]
+    return _arrays.assemble(*axis), angle
 
 
 def from_axis_angle(
@@ -161,15 +159,27 @@ def to_mrp(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3"]:
     return _arrays.compiled(_to_mrp, _checks.quat(q))
 
 
+def _canonical_components(q: Array) -> list[Array]:
+    """The components of ``canonicalize(rescaled(q))`` (:func:`jaxquat._arrays.components`)."""
+    c = _safe.rescaled_components(*_arrays.components(q))
+    sign = _quaternion.canonical_sign(*c)
+    return [sign * x for x in c]
+
+
+# to_mrp, from_mrp and to_axis_angle are written on components (in by _arrays.components, out by
+# _arrays.assemble). Session 52 repeated their per-row divisors along the rows (per_row): the
+# broadcast's cotangent was a YNNPACK sum over the minor axis on CPU (10^5, one core, gradient
+# float32 to_mrp 4.5 -> 0.8 ms, to_axis_angle 4.3 -> 2.2 ms). Session 53, rows -> components,
+# measured against session 52's code the same day (10^5, one pinned core, least of 7), value /
+# gradient in ms, float32 then float64: to_mrp 1.6 / 2.1 -> 0.6 / 0.83 and 1.8 / 4.3 -> 1.05 /
+# 1.86; to_axis_angle 0.97 / 3.3 -> 0.93 / 0.93 and 1.75 / 4.9 -> 1.9 / 2.1; from_mrp 0.34 /
+# 1.34 -> 0.26 / 0.38 and 0.62 / 2.67 -> 0.55 / 0.81.
+
+
 def _to_mrp(q: Array) -> Array:
-    q = _quaternion.canonicalize(_safe.rescaled(q))
-    w = q[..., 0]
-    n = jnp.sqrt(_safe.norm_sq(q))
-    # the divisor repeated along the row (per_row), not broadcast: the broadcast's cotangent was a
-    # YNNPACK sum over the minor axis on CPU. 10^5, one core, gradient float32 4.5 -> 0.8 ms,
-    # float64 6.4 -> 2.1 ms (to_axis_angle's 4.3 -> 2.2 and 5.4 -> 3.4 ms, from_mrp's 0.58 ->
-    # 0.45 and 0.94 -> 0.73 ms likewise)
-    return q[..., 1:] / _arrays.per_row(n + w, 3)
+    w, x, y, z = _canonical_components(q)
+    scale = 1.0 / (jnp.sqrt(w * w + x * x + y * y + z * z) + w)
+    return _arrays.assemble(scale * x, scale * y, scale * z)
 
 
 def from_mrp(p: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 4"]:
@@ -181,6 +191,8 @@ def from_mrp(p: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 4"]:
 
 
 def _from_mrp(p: Array) -> Array:
-    psq = _safe.norm_sq(p)
+    x, y, z = _arrays.components(p)
+    psq = x * x + y * y + z * z
     denom = 1.0 + psq
-    return _quaternion.scalar_vector((1.0 - psq) / denom, p * _arrays.per_row(2.0 / denom, 3))
+    scale = 2.0 / denom
+    return _arrays.assemble((1.0 - psq) / denom, scale * x, scale * y, scale * z)
