@@ -7,15 +7,7 @@
 # 0.7.1-0.7.2, beartype) are installed to /tmp/site first.
 #   bash benchmarks/gpu_bench.sh
 #   SIM_ARGS="--batches 1000 --grad-batches 1000" SWEEP_ROWS=100000 bash benchmarks/gpu_bench.sh
-set -u
-OUT=${OUT:-gpu-out}
-mkdir -p "$OUT"
-if [ -d "${WHEELS:-.whl}" ]; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site "${WHEELS:-.whl}"/*.whl || exit 1
-  export PYTHONPATH=/tmp/site:$PWD
-else
-  export PYTHONPATH=$PWD
-fi
+source "$(dirname "$0")/gpu_setup.sh"
 export PYTHONUNBUFFERED=1 JAXQUAT_TEST_XLA_DEFAULTS=1
 start=$(date +%s)
 nvidia-smi -L

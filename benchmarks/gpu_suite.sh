@@ -9,15 +9,7 @@
 # Wheels in $WHEELS (packages the machine lacks: diffrax 0.7.0 where it has 0.7.1-0.7.2, beartype,
 # numpy-quaternion) are installed to /tmp/site first. Session 26 used it on an H100
 # (docs/benchmarks.md, "The test suite on a GPU").
-set -u
-OUT=${OUT:-gpu-out}
-mkdir -p "$OUT"
-if [ -d "${WHEELS:-.whl}" ]; then
-  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site "${WHEELS:-.whl}"/*.whl || exit 1
-  export PYTHONPATH=/tmp/site:$PWD
-else
-  export PYTHONPATH=$PWD
-fi
+source "$(dirname "$0")/gpu_setup.sh"
 nvidia-smi -L
 python3 -c "import jax, diffrax, equinox, optimistix, lineax, optax; print('jax', jax.__version__, jax.devices(), 'diffrax', diffrax.__version__, 'equinox', equinox.__version__, 'optimistix', optimistix.__version__, 'lineax', lineax.__version__, 'optax', optax.__version__)"
 export XLA_PYTHON_CLIENT_PREALLOCATE=false JAXQUAT_TEST_XLA_DEFAULTS=1 PYTHONUNBUFFERED=1
