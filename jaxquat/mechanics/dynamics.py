@@ -86,7 +86,7 @@ def _angular_momentum(q: Array, omega: Array, inertia: Array, frame: str) -> Arr
 # angular_momentum in q (space) 3.2 -> 0.22 / 5.7 -> 0.5 ms; angular_acceleration in q (space)
 # 4.7 -> 0.36 / 29.8 -> 0.9 ms, in the inertia 5.2 -> 2.6 / 6.4 -> 2.9 ms;
 # euler_parameter_acceleration in q (body) 25.7 -> 1.6 / 60.4 -> 3.2 ms, in qdot (space) 3.2 ->
-# 1.0 / 11.5 -> 2.0 ms, in the inertia 8.4 -> 4.0 / 16.5 -> 5.3 ms; euler_parameter_torque 15.5
+# 1.0 / 11.5 -> 2.0 ms, in the inertia 8.4 -> 2.7 / 16.5 -> 4.3 ms; euler_parameter_torque 15.5
 # -> 1.4 / 30.7 -> 3.0 ms; inverse_dynamics 0.81 -> 0.33 / 1.56 -> 0.57 ms;
 # norm_constraint_multiplier 1.25 -> 0.53 / 2.42 -> 1.00 ms.
 
