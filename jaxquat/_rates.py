@@ -149,7 +149,7 @@ def to_body_parts(qc: list[Array], v: list[Array], frame: str) -> list[Array]:
 
 
 def from_body_parts(qc: list[Array], v: list[Array], frame: str) -> list[Array]:
-    """:func:`from_body` on components."""
+    """A body-frame vector expressed in ``frame``, on components (unit ``q``)."""
     return v if frame == "body" else rotate_parts(qc, v, inverse=False)
 
 
@@ -197,11 +197,6 @@ def euler_torque_parts(entries: list[list[Array]], w: list[Array], alpha: list[A
 def to_body(q: Array, v: Array, frame: str) -> Array:
     """Resolve a vector given in ``frame`` in the body frame (unit ``q``)."""
     return v if frame == "body" else _quaternion.rotate(_quaternion.conjugate(q), v)
-
-
-def from_body(q: Array, v: Array, frame: str) -> Array:
-    """Express a body-frame vector in ``frame`` (unit ``q``)."""
-    return v if frame == "body" else _quaternion.rotate(q, v)
 
 
 def euler_body(inertia: Array, w: Array, torque: Array) -> Array:
