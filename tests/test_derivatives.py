@@ -297,14 +297,21 @@ def test_from_matrix_two_forms_under_transforms():
     identity or a half turn and at case boundaries, and second derivatives agree with JAX's of the
     component form."""
     m = _matrices(4)
-    for i in (0, 11, 12):  # the identity or a half turn, R22 = 0, R00 = R22 = 0
-        one = m[i]
-        _assert_close(jax.jacfwd(_rotation.from_matrix_shepperd)(one), jax.jacrev(_rotation.from_matrix_shepperd)(one))
-        _assert_close(
-            jax.hessian(lambda x: _rotation.from_matrix_shepperd(x)[1])(one),
-            jax.hessian(lambda x: _rotation._shepperd_components(x)[1])(one),
+
+    @jax.jit  # one program for the three points (eagerly: a program per operation, 19 s of the float64 pass)
+    def forms(one):
+        return (
+            (jax.jacfwd(_rotation.from_matrix_shepperd)(one), jax.jacrev(_rotation.from_matrix_shepperd)(one)),
+            (
+                jax.hessian(lambda x: _rotation.from_matrix_shepperd(x)[1])(one),
+                jax.hessian(lambda x: _rotation._shepperd_components(x)[1])(one),
+            ),
         )
-    check_grads(_rotation.from_matrix_shepperd, (m[14],), order=2, modes=("fwd", "rev"))
+
+    for i in (0, 11, 12):  # the identity or a half turn, R22 = 0, R00 = R22 = 0
+        for got, want in forms(m[i]):
+            _assert_close(got, want)
+    check_grads(jax.jit(_rotation.from_matrix_shepperd), (m[14],), order=2, modes=("fwd", "rev"))
 
 
 @pytest.mark.parametrize("cpu", [True, False], ids=["cpu", "other"])

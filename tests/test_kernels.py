@@ -108,7 +108,7 @@ def test_one_loop_barriers_are_the_identity_to_every_transform(barrier):
         return _through(barrier, x)
 
     tol = dict(rtol=64 * EPS, atol=64 * EPS)
-    for transform in (
+    transforms = (
         lambda f: jax.grad(cost(f))(x),
         lambda f: jax.jvp(f, (x,), (dx,))[1],
         lambda f: jax.jacfwd(cost(f))(x),
@@ -121,13 +121,14 @@ def test_one_loop_barriers_are_the_identity_to_every_transform(barrier):
         lambda f: jax.jacfwd(jax.grad(jax.checkpoint(cost(f))))(x),
         lambda f: jax.grad(jax.checkpoint(cost(f), policy=jax.checkpoint_policies.everything_saveable))(x),
         lambda f: jax.vmap(jax.grad(cost(f)))(jnp.stack([x, 2 * x])),
-    ):
-        got, want = jax.jit(lambda t=transform: t(step))(), jax.jit(lambda t=transform: t(_through_plain))()
-        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
-            np.testing.assert_allclose(a, b, **tol)
+    )
+    # every transform in one program per form (a program per transform: 24 compilations)
+    got, want = (jax.jit(lambda f=f: [t(f) for t in transforms])() for f in (step, _through_plain))
+    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+        np.testing.assert_allclose(a, b, **tol)
     pair = jax.vmap(BARRIERS[barrier], in_axes=((0, None),))((jnp.stack([x, dx]), x))
     np.testing.assert_array_equal(pair[1], jnp.stack([x, x]))
-    check_grads(lambda x: step(x)[0], (x,), order=2, modes=["fwd", "rev"])
+    check_grads(jax.jit(lambda x: step(x)[0]), (x,), order=2, modes=["fwd", "rev"])
 
 
 @pytest.mark.skipif(not X64, reason="a lowering test: its verdict does not depend on the dtype")
@@ -269,7 +270,7 @@ def test_sums_derivatives_are_those_of_the_sums():
     dx = jnp.asarray(np.random.default_rng(3).normal(size=(3, 5)), DTYPE)
     step, plain = _sums_step(_fusion.sums), _sums_step(_sums_reference)
     tol = dict(rtol=64 * EPS, atol=64 * EPS)
-    for transform in (
+    transforms = (
         lambda f: jax.grad(f)(x),
         lambda f: jax.jvp(f, (x,), (dx,))[1],
         lambda f: jax.jacfwd(f)(x),
@@ -280,14 +281,15 @@ def test_sums_derivatives_are_those_of_the_sums():
         lambda f: jax.grad(jax.checkpoint(f))(x),
         lambda f: jax.jacfwd(jax.grad(jax.checkpoint(f)))(x),
         lambda f: jax.vmap(jax.grad(f))(jnp.stack([x, 2 * x])),
-    ):
-        got, want = jax.jit(lambda t=transform: t(step))(), jax.jit(lambda t=transform: t(plain))()
-        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
-            np.testing.assert_allclose(a, b, **tol)
+    )
+    # every transform in one program per form (a program per transform: 20 compilations)
+    got, want = (jax.jit(lambda f=f: [t(f) for t in transforms])() for f in (step, plain))
+    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+        np.testing.assert_allclose(a, b, **tol)
     mapped, unmapped = jax.vmap(lambda a, b: _fusion.sums((a, b), 0), in_axes=(0, None), out_axes=(0, None))(x, x[0])
     np.testing.assert_allclose(mapped, jnp.sum(x, axis=1), **tol)
     np.testing.assert_allclose(unmapped, jnp.sum(x[0]), **tol)
-    check_grads(step, (x,), order=2, modes=["fwd", "rev"])
+    check_grads(jax.jit(step), (x,), order=2, modes=["fwd", "rev"])
 
 
 @pytest.mark.skipif(not X64, reason="a lowering test: its verdict does not depend on the dtype")
