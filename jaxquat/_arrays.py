@@ -420,6 +420,47 @@ def compiled(fn, *arrays: Any, **static):
     return _jit(fn, tuple(sorted(static)), _trig.is_cpu())(*arrays, **static)
 
 
+def compiled_rows(fn, cores: tuple[int, ...], *arrays: Any, **static):
+    """:func:`compiled` for a function computed row by row: ``arrays[i]`` has ``cores[i]`` core
+    axes after its batch axes (a quaternion 1, a matrix 2, a scalar 0; ``None`` for an empty
+    argument), and every result the batch axes first. Over a batch of two or more axes the
+    arrays go to ``fn`` with the batch flattened to one axis (broadcast first where an array's
+    batch is part of it; an array without batch axes as it is), and the results come back shaped.
+
+    Why: XLA's CPU loops vectorise along the last axis of an array. A component ``x[..., i]`` of
+    a ``(n, 3, 4)`` batch is ``(n, 3)``, whose inner loop runs over 3 elements; flattened it is
+    ``(3 n,)``. Measured (float32, 3 x 10^5 rotations, one core, least of 7, value / gradient of
+    ``sum(f * W)``): ``to_rotvec`` on ``(10^5, 3, 4)`` 4.9 / 20.9 ms against 2.2 / 3.1 ms on
+    ``(3 x 10^5, 4)``, ``slerp`` 29.6 / 15.5 against 5.4 / 6.3 ms, ``from_rotvec`` 3.3 / 3.1
+    against 1.0 / 1.3 ms, ``multiply`` 1.25 / 1.23 against 0.43 / 0.43 ms. Flattening leading
+    axes that are contiguous is a reshape without a copy; the values are the same to the bit."""
+    return _jit(_flattened(fn, cores), tuple(sorted(static)), _trig.is_cpu())(*arrays, **static)
+
+
+@functools.cache
+def _flattened(fn, cores: tuple[int, ...]):
+    """``fn`` with the batch of its arrays flattened to one axis (:func:`compiled_rows`)."""
+
+    @functools.wraps(fn)
+    def flat(*arrays, **static):
+        batches = [a.shape[: a.ndim - c] for a, c in zip(arrays, cores) if a is not None]
+        batch = jnp.broadcast_shapes(*batches) if batches else ()
+        if len(batch) < 2:
+            return fn(*arrays, **static)
+        n = functools.reduce(operator.mul, batch, 1)
+
+        def rows(a, c):
+            if a is None or a.ndim == c:
+                return a
+            core = a.shape[a.ndim - c :]
+            return jnp.broadcast_to(a, batch + core).reshape((n,) + core)
+
+        out = fn(*(rows(a, c) for a, c in zip(arrays, cores)), **static)
+        return jax.tree.map(lambda x: x.reshape(batch + x.shape[1:]), out)
+
+    return flat
+
+
 def rows_at_a_time(fn, rows: int, *xs: Array) -> Array:
     """``fn(*xs)`` for arrays of one leading axis (a flattened batch), ``rows`` rows at a time when
     the batch is longer: a ``fori_loop`` over blocks, the last block ending at the last row

@@ -19,6 +19,7 @@ from hypothesis import given, settings
 from jax.test_util import check_grads
 
 from helpers import DTYPE, NP_DTYPE, X64, seeds
+import jaxquat as jq
 from jaxquat import _arrays, _fusion, _jacobi, _quaternion, _safe, _trig
 
 EPS = float(np.finfo(NP_DTYPE).eps)
@@ -437,6 +438,47 @@ def _roundtrip(x):
 
 
 _roundtrip_jit = jax.jit(_roundtrip)
+
+
+def _flat_and_nested(q, p, v, t):
+    """``to_rotvec``, ``slerp`` (``p`` without batch axes, ``t`` per element) and ``rotate`` with
+    the gradient of a weighted sum of them in ``q``."""
+
+    def f(q):
+        return jq.to_rotvec(q), jq.slerp(q, p, t), jq.rotate(q, v)
+
+    def loss(q):
+        return sum(jnp.sum(x * jnp.arange(x.size, dtype=x.dtype).reshape(x.shape)) for x in f(q))
+
+    return (*f(q), jax.grad(loss)(q))
+
+
+_flat_and_nested_jit = jax.jit(_flat_and_nested)
+
+
+def test_public_functions_flatten_a_batch_of_several_axes():
+    """A row-wise public function (``_arrays.compiled_rows``) computes a batch of several axes as
+    one axis: the kernel receives ``(n, 4)`` rows (an ``(n // 3, 3)`` batch's components would
+    be ``(n // 3, 3)`` arrays, along whose last axis of 3 XLA's CPU loops ran: ``to_rotvec``'s
+    gradient at 10^5 x 3 rotations 21.2 ms against 3.1 ms flat). The values are those of the flat
+    batch to the bit (the gradient of a sum of three to rounding), an operand without batch axes
+    broadcasts, and a batch of one axis or none is passed as it is."""
+    rng = np.random.default_rng(3)
+    q = jnp.asarray(rng.normal(size=(12, 4)), DTYPE)
+    q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+    v = jnp.asarray(rng.normal(size=(12, 3)), DTYPE)
+    t = jnp.asarray(rng.uniform(size=12), DTYPE)
+    p = jnp.asarray([0.5, 0.5, -0.5, 0.5], DTYPE)
+    flat = _flat_and_nested_jit(q, p, v, t)
+    nested = _flat_and_nested_jit(q.reshape(4, 3, 4), p, v.reshape(4, 3, 3), t.reshape(4, 3))
+    for a, b in zip(flat[:3], nested[:3]):
+        np.testing.assert_array_equal(np.asarray(b).reshape(a.shape), np.asarray(a))
+    # the three functions' cotangents of q add in another order: measured 3 eps in 2 of 48 entries
+    np.testing.assert_allclose(np.asarray(nested[3]).reshape(12, 4), flat[3], rtol=16 * EPS, atol=16 * EPS)
+    jaxpr = str(jax.make_jaxpr(jq.to_rotvec)(q.reshape(2, 2, 3, 4)))
+    assert re.search(r"reshape\[[^\]]*new_sizes=\(12, 4\)", jaxpr), jaxpr
+    for one_or_none, flattened in ((q, "(12, 4)"), (q[0], "(1, 4)")):
+        assert f"new_sizes={flattened}" not in str(jax.make_jaxpr(jq.to_rotvec)(one_or_none))
 
 
 @pytest.mark.parametrize("cpu", [True, False], ids=["cpu", "other"])

@@ -28,7 +28,7 @@ def slerp(
     Assumes unit ``p`` and ``q``. ``p``, ``q`` and ``t`` broadcast over batch axes.
     """
     p, q, t = _checks.arguments(p=(p, "quaternion"), q=(q, "quaternion"), t=(t, "scalar"))
-    return _arrays.compiled(_rotation.slerp, p, q, t)
+    return _arrays.compiled_rows(_rotation.slerp, (1, 1, 0), p, q, t)
 
 
 def _control_points(keys: Array) -> Array:
@@ -73,7 +73,7 @@ def squad_segment(
     arrays = [_checks.quat(q0, "q0"), _checks.quat(q1, "q1"), _checks.quat(s0, "s0"), _checks.quat(s1, "s1")]
     h = _checks.scalar_like(h, "h")
     q0, q1, s0, s1, h = _checks.broadcast_batch([*arrays, h], ["q0", "q1", "s0", "s1", "h"], [1, 1, 1, 1, 0])
-    return _arrays.compiled(_squad_segment, q0, q1, s0, s1, h)
+    return _arrays.compiled_rows(_squad_segment, (1, 1, 1, 1, 0), q0, q1, s0, s1, h)
 
 
 def _squad_segment(q0: Array, q1: Array, s0: Array, s1: Array, h: Array) -> Array:

@@ -43,7 +43,7 @@ def plus(
     """
     frame = _checks.frame(frame)
     q, delta = _checks.arguments(q=(q, "quaternion"), delta=(delta, "vector"))
-    return _arrays.compiled(_plus, q, delta, frame=frame)
+    return _arrays.compiled_rows(_plus, (1, 1), q, delta, frame=frame)
 
 
 def _plus(q: Array, delta: Array, frame: str) -> Array:
@@ -63,7 +63,7 @@ def minus(
     """
     frame = _checks.frame(frame)
     q1, q0 = _checks.arguments(q1=(q1, "quaternion"), q0=(q0, "quaternion"))
-    return _arrays.compiled(_minus, q1, q0, frame=frame)
+    return _arrays.compiled_rows(_minus, (1, 1), q1, q0, frame=frame)
 
 
 def _minus(q1: Array, q0: Array, frame: str) -> Array:
@@ -84,7 +84,7 @@ def right_jacobian(phi: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 
     so every derivative is exact at ``phi = 0`` (where ``J_r = I``). Maps
     exponential-coordinate rates to body angular velocity: ``w_b = J_r(phi) phi'``.
     """
-    return _arrays.compiled(_rotation.right_jacobian, _checks.vec3(phi, "phi"))
+    return _arrays.compiled_rows(_rotation.right_jacobian, (1,), _checks.vec3(phi, "phi"))
 
 
 def right_jacobian_inverse(phi: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
@@ -94,7 +94,7 @@ def right_jacobian_inverse(phi: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*
     ``t = 2 pi`` (outside the range of :func:`minus`). Series in ``t^2`` near 0.
     ``phi' = J_r^-1(phi) w_b``.
     """
-    return _arrays.compiled(_rotation.right_jacobian_inverse, _checks.vec3(phi, "phi"))
+    return _arrays.compiled_rows(_rotation.right_jacobian_inverse, (1,), _checks.vec3(phi, "phi"))
 
 
 def left_jacobian(phi: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
@@ -102,12 +102,12 @@ def left_jacobian(phi: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3
 
     Maps exponential-coordinate rates to space angular velocity: ``w_s = J_l(phi) phi'``.
     """
-    return _arrays.compiled(_left_jacobian, _checks.vec3(phi, "phi"))
+    return _arrays.compiled_rows(_left_jacobian, (1,), _checks.vec3(phi, "phi"))
 
 
 def left_jacobian_inverse(phi: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     """``J_l(phi)^-1 = J_r(-phi)^-1 = I - hat(phi)/2 + (1/t^2 - cot(t/2)/(2 t)) hat(phi)^2``."""
-    return _arrays.compiled(_left_jacobian_inverse, _checks.vec3(phi, "phi"))
+    return _arrays.compiled_rows(_left_jacobian_inverse, (1,), _checks.vec3(phi, "phi"))
 
 
 def _left_jacobian(phi: Array) -> Array:
@@ -124,4 +124,4 @@ def adjoint(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
     Moves a body-frame tangent vector to the space frame:
     ``plus(q, d, "body") == plus(q, adjoint(q) @ d, "space")``. Assumes ``|q| = 1``.
     """
-    return _arrays.compiled(_rotation.to_matrix, _checks.quat(q))
+    return _arrays.compiled_rows(_rotation.to_matrix, (1,), _checks.quat(q))

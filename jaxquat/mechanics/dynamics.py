@@ -67,7 +67,7 @@ def angular_momentum(
     q, omega, inertia = _checks.arguments(
         q=(q, "quaternion"), omega=(omega, "vector"), inertia=(validated(inertia), "inertia")
     )
-    return _arrays.compiled(_angular_momentum, q, omega, inertia, frame=frame)
+    return _arrays.compiled_rows(_angular_momentum, (1, 1, 2), q, omega, inertia, frame=frame)
 
 
 def _angular_momentum(q: Array, omega: Array, inertia: Array, frame: str) -> Array:
@@ -106,7 +106,7 @@ def kinetic_energy(
     q, omega, inertia = _checks.arguments(
         q=(q, "quaternion"), omega=(omega, "vector"), inertia=(validated(inertia), "inertia")
     )
-    return _arrays.compiled(_kinetic_energy, q, omega, inertia, frame=frame)
+    return _arrays.compiled_rows(_kinetic_energy, (1, 1, 2), q, omega, inertia, frame=frame)
 
 
 def _kinetic_energy(q: Array, omega: Array, inertia: Array, frame: str) -> Array:
@@ -130,7 +130,7 @@ def angular_acceleration(
     """
     frame = _checks.frame(frame)
     checked = _checked_with_torque(q, "omega", omega, torque, inertia)
-    return _arrays.compiled(_angular_acceleration, *checked, frame=frame)
+    return _arrays.compiled_rows(_angular_acceleration, (1, 1, 1, 2), *checked, frame=frame)
 
 
 def _angular_acceleration(q: Array, omega: Array, torque: Array | None, inertia: Array, frame: str) -> Array:
@@ -158,7 +158,7 @@ def inverse_dynamics(
     q, omega, alpha, inertia = _checks.arguments(
         q=(q, "quaternion"), omega=(omega, "vector"), alpha=(alpha, "vector"), inertia=(validated(inertia), "inertia")
     )
-    return _arrays.compiled(_inverse_dynamics, q, omega, alpha, inertia, frame=frame)
+    return _arrays.compiled_rows(_inverse_dynamics, (1, 1, 1, 2), q, omega, alpha, inertia, frame=frame)
 
 
 def _inverse_dynamics(q: Array, omega: Array, alpha: Array, inertia: Array, frame: str) -> Array:
@@ -195,7 +195,7 @@ def euler_parameter_acceleration(
     """
     frame = _checks.frame(frame)
     checked = _checked_with_torque(q, "qdot", qdot, torque, inertia)
-    return _arrays.compiled(_euler_parameter_acceleration, *checked, frame=frame)
+    return _arrays.compiled_rows(_euler_parameter_acceleration, (1, 1, 1, 2), *checked, frame=frame)
 
 
 def _euler_parameter_acceleration(q: Array, qdot: Array, torque: Array | None, inertia: Array, frame: str) -> Array:
@@ -226,7 +226,7 @@ def euler_parameter_torque(
         qddot=(qddot, "quaternion"),
         inertia=(validated(inertia), "inertia"),
     )
-    return _arrays.compiled(_euler_parameter_torque, q, qdot, qddot, inertia, frame=frame)
+    return _arrays.compiled_rows(_euler_parameter_torque, (1, 1, 1, 2), q, qdot, qddot, inertia, frame=frame)
 
 
 def _euler_parameter_torque(q: Array, qdot: Array, qddot: Array, inertia: Array, frame: str) -> Array:
@@ -265,7 +265,7 @@ def euler_parameter_mass_matrix(
     :func:`euler_parameter_augmented_system` makes the system solvable.
     """
     q, inertia = _checks.arguments(q=(q, "quaternion"), inertia=(validated(inertia), "inertia"))
-    return _arrays.compiled(_mass_matrix, q, inertia)
+    return _arrays.compiled_rows(_mass_matrix, (1, 2), q, inertia)
 
 
 def _mass_matrix(q: Array, inertia: Array) -> Array:
@@ -283,7 +283,7 @@ def generalized_force(
     """
     frame = _checks.frame(frame)
     q, torque = _checks.arguments(q=(q, "quaternion"), torque=(torque, "vector"))
-    return _arrays.compiled(_generalized_force, q, torque, frame=frame)
+    return _arrays.compiled_rows(_generalized_force, (1, 1), q, torque, frame=frame)
 
 
 def _generalized_force(q: Array, torque: Array, frame: str) -> Array:
@@ -302,7 +302,7 @@ def torque_from_generalized_force(
     """
     frame = _checks.frame(frame)
     q, force = _checks.arguments(q=(q, "quaternion"), force=(force, "quaternion"))
-    return _arrays.compiled(_torque_from_generalized_force, q, force, frame=frame)
+    return _arrays.compiled_rows(_torque_from_generalized_force, (1, 1), q, force, frame=frame)
 
 
 def _torque_from_generalized_force(q: Array, force: Array, frame: str) -> Array:
@@ -333,7 +333,7 @@ def euler_parameter_augmented_system(
     """
     frame = _checks.frame(frame)
     checked = _checked_with_torque(q, "qdot", qdot, torque, inertia)
-    return _arrays.compiled(_augmented_system, *checked, frame=frame)
+    return _arrays.compiled_rows(_augmented_system, (1, 1, 1, 2), *checked, frame=frame)
 
 
 def _augmented_system(q: Array, qdot: Array, torque: Array | None, inertia: Array, frame: str) -> tuple[Array, Array]:
@@ -367,7 +367,7 @@ def norm_constraint_multiplier(
     q, qdot, inertia = _checks.arguments(
         q=(q, "quaternion"), qdot=(qdot, "quaternion"), inertia=(validated(inertia), "inertia")
     )
-    return _arrays.compiled(_norm_constraint_multiplier, q, qdot, inertia)
+    return _arrays.compiled_rows(_norm_constraint_multiplier, (1, 1, 2), q, qdot, inertia)
 
 
 def _norm_constraint_multiplier(q: Array, qdot: Array, inertia: Array) -> Array:

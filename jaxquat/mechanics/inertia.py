@@ -75,7 +75,7 @@ def rotate_inertia(
     ``rotate_inertia(conjugate(q), I0)`` goes back. Assumes ``|q| = 1``.
     """
     q, inertia = _checks.arguments(q=(q, "quaternion"), inertia=(inertia, "inertia"))
-    return _arrays.compiled(_rotate_inertia, q, inertia)
+    return _arrays.compiled_rows(_rotate_inertia, (1, 2), q, inertia)
 
 
 def _rotate_inertia(q: Array, inertia: Array) -> Array:
@@ -95,7 +95,7 @@ def inertia_rate(
 ) -> Float[Array, "*batch 3 3"]:
     """Time derivative of the space-frame inertia of a rigid body: ``dI0/dt = hat(w) I0 - I0 hat(w)``, [C] eq. (C4)."""
     i0, w = _checks.arguments(inertia_space=(inertia_space, "inertia"), omega_space=(omega_space, "vector"))
-    return _arrays.compiled(_inertia_rate, i0, w)
+    return _arrays.compiled_rows(_inertia_rate, (2, 1), i0, w)
 
 
 def _inertia_rate(i0: Array, w: Array) -> Array:
@@ -112,7 +112,7 @@ def quaternion_inertia(inertia: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, 
     velocity, which is zero, so ``quaternion_inertia(I) @ (0, w) = (0, I w)``
     ([C] eqs. (60)-(61)); its role is to make the four-space matrix invertible.
     """
-    return _arrays.compiled(_quaternion_inertia, _checks.inertia(inertia))
+    return _arrays.compiled_rows(_quaternion_inertia, (2,), _checks.inertia(inertia))
 
 
 def _quaternion_inertia(inertia: Array) -> Array:

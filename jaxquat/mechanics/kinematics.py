@@ -57,7 +57,7 @@ def rate_matrix(q: Float[ArrayLike, "*batch 4"], frame: str = "body") -> Float[A
     ``hat(w_s) = 2 (dE_space/dt) E_space^T`` ([C] eqs. (45), (51)).
     """
     frame = _checks.frame(frame)
-    return _arrays.compiled(_rate_matrix, _checks.quat(q), frame=frame)
+    return _arrays.compiled_rows(_rate_matrix, (1,), _checks.quat(q), frame=frame)
 
 
 def _rate_matrix(q: Array, frame: str) -> Array:
@@ -82,7 +82,7 @@ def qdot_from_omega(
     """
     frame = _checks.frame(frame)
     q, omega = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"))
-    return _arrays.compiled(_rates.qdot_from_omega, q, omega, frame=frame)
+    return _arrays.compiled_rows(_rates.qdot_from_omega, (1, 1), q, omega, frame=frame)
 
 
 def omega_from_qdot(
@@ -101,7 +101,7 @@ def omega_from_qdot(
     """
     frame = _checks.frame(frame)
     q, qdot = _checks.arguments(q=(q, "quaternion"), qdot=(qdot, "quaternion"))
-    return _arrays.compiled(_rates.omega_from_qdot_by_components, q, qdot, frame=frame)
+    return _arrays.compiled_rows(_rates.omega_from_qdot_by_components, (1, 1), q, qdot, frame=frame)
 
 
 def qddot_from_alpha(
@@ -126,7 +126,7 @@ def qddot_from_alpha(
     """
     frame = _checks.frame(frame)
     q, qdot, alpha = _checks.arguments(q=(q, "quaternion"), qdot=(qdot, "quaternion"), alpha=(alpha, "vector"))
-    return _arrays.compiled(_rates.qddot_from_alpha_by_components, q, qdot, alpha, frame=frame)
+    return _arrays.compiled_rows(_rates.qddot_from_alpha_by_components, (1, 1, 1), q, qdot, alpha, frame=frame)
 
 
 def alpha_from_qddot(
@@ -149,7 +149,7 @@ def alpha_from_qddot(
     """
     frame = _checks.frame(frame)
     q, qdot, qddot = _checks.arguments(q=(q, "quaternion"), qdot=(qdot, "quaternion"), qddot=(qddot, "quaternion"))
-    return _arrays.compiled(_rates.alpha_from_qddot_by_components, q, qdot, qddot, frame=frame)
+    return _arrays.compiled_rows(_rates.alpha_from_qddot_by_components, (1, 1, 1), q, qdot, qddot, frame=frame)
 
 
 def matrix_rate(
@@ -163,7 +163,7 @@ def matrix_rate(
     """
     frame = _checks.frame(frame)
     q, omega = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"))
-    return _arrays.compiled(_matrix_rate, q, omega, frame=frame)
+    return _arrays.compiled_rows(_matrix_rate, (1, 1), q, omega, frame=frame)
 
 
 def _matrix_rate(q: Array, omega: Array, frame: str) -> Array:
@@ -185,7 +185,7 @@ def matrix_acceleration(
     """
     frame = _checks.frame(frame)
     q, omega, alpha = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"), alpha=(alpha, "vector"))
-    return _arrays.compiled(_matrix_acceleration, q, omega, alpha, frame=frame)
+    return _arrays.compiled_rows(_matrix_acceleration, (1, 1, 1), q, omega, alpha, frame=frame)
 
 
 def _matrix_acceleration(q: Array, omega: Array, alpha: Array, frame: str) -> Array:
@@ -213,7 +213,7 @@ def point_velocity(
     checked = _checks.optional_arguments(
         q=(q, "quaternion"), omega=(omega, "vector"), r=(r, "vector"), r_dot=(r_dot, "vector?")
     )
-    return _arrays.compiled(_point_velocity, *checked, frame=frame)
+    return _arrays.compiled_rows(_point_velocity, (1, 1, 1, 1), *checked, frame=frame)
 
 
 def _point_velocity(q: Array, omega: Array, r: Array, r_dot: Array | None, frame: str) -> Array:
@@ -257,7 +257,7 @@ def point_acceleration(
         r_dot=(r_dot, "vector?"),
         r_ddot=(r_ddot, "vector?"),
     )
-    return _arrays.compiled(_point_acceleration, *checked, frame=frame)
+    return _arrays.compiled_rows(_point_acceleration, (1, 1, 1, 1, 1, 1), *checked, frame=frame)
 
 
 def _point_acceleration(

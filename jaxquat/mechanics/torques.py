@@ -74,7 +74,7 @@ def gravity_gradient_torque(
         q, r, inertia, mu = _checks.arguments(
             q=(q, "quaternion"), position=(position, "vector"), inertia=(inertia, "inertia"), mu=(mu, "scalar")
         )
-    return _arrays.compiled(_gravity_gradient_torque, q, r, inertia, mu)
+    return _arrays.compiled_rows(_gravity_gradient_torque, (1, 1, 2, 0), q, r, inertia, mu)
 
 
 def _gravity_gradient_torque(q: Array, r: Array, inertia: Array, mu: Array) -> Array:

@@ -49,12 +49,12 @@ def multiply(p: Float[ArrayLike, "*#batch 4"], q: Float[ArrayLike, "*#batch 4"])
     not; batch axes broadcast.
     """
     p, q = _checks.arguments(p=(p, "quaternion"), q=(q, "quaternion"))
-    return _arrays.compiled(_quaternion.multiply, p, q)
+    return _arrays.compiled_rows(_quaternion.multiply, (1, 1), p, q)
 
 
 def conjugate(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     """Conjugate ``q* = (q0, -q)``, [T] eq. (9). The inverse rotation for unit ``q``."""
-    return _arrays.compiled(_quaternion.conjugate, _checks.quat(q))
+    return _arrays.compiled_rows(_quaternion.conjugate, (1,), _checks.quat(q))
 
 
 def norm(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch"]:
@@ -62,7 +62,7 @@ def norm(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch"]:
 
     The gradient at ``q = 0`` is 0 (a subgradient of the cone) instead of NaN.
     """
-    return _arrays.compiled(_safe.safe_norm, _checks.quat(q))
+    return _arrays.compiled_rows(_safe.safe_norm, (1,), _checks.quat(q))
 
 
 def normalize(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
@@ -85,7 +85,7 @@ def inverse(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
 
     For a zero quaternion the result is NaN (element-wise, as in :func:`normalize`).
     """
-    return _arrays.compiled(_inverse, _checks.quat(q))
+    return _arrays.compiled_rows(_inverse, (1,), _checks.quat(q))
 
 
 def _inverse(q: Array) -> Array:
@@ -127,7 +127,7 @@ def exp(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     For a pure quaternion ``(0, phi u / 2)`` it is the unit quaternion of the
     rotation by ``phi`` about ``u``.
     """
-    return _arrays.compiled(_exp, _checks.quat(q))
+    return _arrays.compiled_rows(_exp, (1,), _checks.quat(q))
 
 
 def _log(q: Array) -> Array:
@@ -157,7 +157,7 @@ def log(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     unique and its derivative does not exist; there the result is
     ``(ln|q|, pi, 0, 0)`` (a valid logarithm). ``log(0)`` is ``-inf`` in the scalar part.
     """
-    return _arrays.compiled(_log, _checks.quat(q))
+    return _arrays.compiled_rows(_log, (1,), _checks.quat(q))
 
 
 def power(q: Float[ArrayLike, "*#batch 4"], t: Float[ArrayLike, "*#batch"] | float) -> Float[Array, "*batch 4"]:
@@ -169,7 +169,7 @@ def power(q: Float[ArrayLike, "*#batch 4"], t: Float[ArrayLike, "*#batch"] | flo
     Smooth at the identity; not differentiable on the negative real axis (see :func:`log`).
     """
     q, t = _checks.arguments(q=(q, "quaternion"), t=(t, "scalar"))
-    return _arrays.compiled(_power, q, t)
+    return _arrays.compiled_rows(_power, (1, 0), q, t)
 
 
 def _power(q: Array, t: Array) -> Array:
@@ -205,7 +205,7 @@ def left_matrix(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4 4"]:
     ``[[q0, -q^T], [q, q0 I + q~]]``: Chou's "+" matrix [C] eq. (11), Schwab's
     ``Q`` [S] eq. (3), Tasora's ``[M(q)+]`` [T] eq. (20b).
     """
-    return _arrays.compiled(_left_matrix, _checks.quat(q))
+    return _arrays.compiled_rows(_left_matrix, (1,), _checks.quat(q))
 
 
 def _left_matrix(q: Array) -> Array:
@@ -227,7 +227,7 @@ def right_matrix(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4 4"]:
     ``[[q0, -q^T], [q, q0 I - q~]]``: Chou's "-" matrix [C] eq. (11), Schwab's
     ``Q-bar`` [S] eq. (3), Tasora's ``[M(q)-]`` [T] eq. (20c).
     """
-    return _arrays.compiled(_right_matrix, _checks.quat(q))
+    return _arrays.compiled_rows(_right_matrix, (1,), _checks.quat(q))
 
 
 def _right_matrix(q: Array) -> Array:
@@ -252,7 +252,7 @@ def rotate(q: Float[ArrayLike, "*#batch 4"], v: Float[ArrayLike, "*#batch 3"]) -
     broadcast over their batch axes.
     """
     q, v = _checks.arguments(q=(q, "quaternion"), v=(v, "vector"))
-    return _arrays.compiled(_quaternion.rotate, q, v)
+    return _arrays.compiled_rows(_quaternion.rotate, (1, 1), q, v)
 
 
 def canonicalize(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
@@ -262,7 +262,7 @@ def canonicalize(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
     of ``x, y, z`` being positive, so the choice is deterministic everywhere.
     The map is piecewise ``+-identity``: its derivative is ``+-I``.
     """
-    return _arrays.compiled(_quaternion.canonicalize, _checks.quat(q))
+    return _arrays.compiled_rows(_quaternion.canonicalize, (1,), _checks.quat(q))
 
 
 def random(key: Array, shape: tuple[int, ...] | int = (), dtype: Any = None) -> Float[Array, "*shape 4"]:

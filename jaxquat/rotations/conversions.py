@@ -35,7 +35,7 @@ def to_matrix(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3 3"]:
     the diagonal. Assumes ``|q| = 1``: for a non-unit ``q`` the result is not
     orthogonal (normalise first). ``to_matrix(q) == to_matrix(-q)``.
     """
-    return _arrays.compiled(_rotation.to_matrix, _checks.quat(q))
+    return _arrays.compiled_rows(_rotation.to_matrix, (1,), _checks.quat(q))
 
 
 def from_matrix(m: Float[ArrayLike, "*batch 3 3"], *, nearest: bool = False) -> Float[Array, "*batch 4"]:
@@ -73,7 +73,7 @@ def from_matrix(m: Float[ArrayLike, "*batch 3 3"], *, nearest: bool = False) -> 
     7.2 ms in float64, against jaxlie's ``SO3.from_matrix`` at 3.5 and 6.6 ms (which
     neither normalises a column off SO(3) nor fixes the sign).
     """
-    return _arrays.compiled(_from_matrix, _checks.mat3(m, "m"), nearest=bool(nearest))
+    return _arrays.compiled_rows(_from_matrix, (2,), _checks.mat3(m, "m"), nearest=bool(nearest))
 
 
 def _from_matrix(m: Array, nearest: bool) -> Array:
@@ -91,7 +91,7 @@ def to_rotvec(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3"]:
     At exactly 180 degrees ``phi u`` and ``-phi u`` are the same rotation; the
     sign follows :func:`jaxquat.canonicalize`.
     """
-    return _arrays.compiled(_rotation.to_rotvec, _checks.quat(q), rescale=True)
+    return _arrays.compiled_rows(_rotation.to_rotvec, (1,), _checks.quat(q), rescale=True)
 
 
 def from_rotvec(r: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 4"]:
@@ -101,7 +101,7 @@ def from_rotvec(r: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 4"]:
     (Jacobian ``I/2`` on the vector part). Any ``|r|`` is accepted; angles beyond
     ``pi`` give ``w < 0``.
     """
-    return _arrays.compiled(_rotation.from_rotvec, _checks.vec3(r, "r"))
+    return _arrays.compiled_rows(_rotation.from_rotvec, (1,), _checks.vec3(r, "r"))
 
 
 def to_axis_angle(q: Float[ArrayLike, "*batch 4"]) -> tuple[Float[Array, "*batch 3"], Float[Array, "*batch"]]:
@@ -113,7 +113,7 @@ def to_axis_angle(q: Float[ArrayLike, "*batch 4"]) -> tuple[Float[Array, "*batch
     ``phi = 0``, with zero gradient for ``u`` and a zero subgradient for ``phi``
     (whose true derivative there does not exist: ``phi = 2|v|`` is a cone).
     """
-    return _arrays.compiled(_to_axis_angle, _checks.quat(q))
+    return _arrays.compiled_rows(_to_axis_angle, (1,), _checks.quat(q))
 
 
 def _to_axis_angle(q: Array) -> tuple[Array, Array]:
@@ -137,7 +137,7 @@ def from_axis_angle(
     ``axis`` and ``angle`` broadcast over their batch axes.
     """
     axis, angle = _checks.arguments(axis=(axis, "vector"), angle=(angle, "scalar"))
-    return _arrays.compiled(_from_axis_angle, axis, angle)
+    return _arrays.compiled_rows(_from_axis_angle, (1, 0), axis, angle)
 
 
 def _from_axis_angle(axis: Array, angle: Array) -> Array:
@@ -156,7 +156,7 @@ def to_mrp(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3"]:
     ``|q| + w`` instead of ``1 + w`` makes it scale-invariant. Smooth everywhere
     except the 180-degree hemisphere switch.
     """
-    return _arrays.compiled(_to_mrp, _checks.quat(q))
+    return _arrays.compiled_rows(_to_mrp, (1,), _checks.quat(q))
 
 
 def _canonical_components(q: Array) -> list[Array]:
@@ -187,7 +187,7 @@ def from_mrp(p: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 4"]:
 
     Any ``p`` is accepted (``|p| > 1`` is the shadow set, giving ``w < 0``). Smooth everywhere.
     """
-    return _arrays.compiled(_from_mrp, _checks.vec3(p, "p"))
+    return _arrays.compiled_rows(_from_mrp, (1,), _checks.vec3(p, "p"))
 
 
 def _from_mrp(p: Array) -> Array:

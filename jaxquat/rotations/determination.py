@@ -49,7 +49,7 @@ def triad(
     """
     names = ["b1", "b2", "r1", "r2"]
     vs = [_checks.vec3(v, n) for v, n in zip((b1, b2, r1, r2), names)]
-    return _arrays.compiled(_triad, *_checks.broadcast_batch(vs, names, [1, 1, 1, 1]))
+    return _arrays.compiled_rows(_triad, (1, 1, 1, 1), *_checks.broadcast_batch(vs, names, [1, 1, 1, 1]))
 
 
 def _triad(b1: Array, b2: Array, r1: Array, r2: Array) -> Array:

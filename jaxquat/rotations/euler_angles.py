@@ -46,7 +46,7 @@ def from_euler(angles: Float[ArrayLike, "*batch 3"], seq: str) -> Float[Array, "
     up to the sign of ``q``. Smooth in the angles everywhere.
     """
     seq = _checks.euler_seq(seq)
-    return _arrays.compiled(_from_euler, _checks.vec3(angles, "angles"), seq=seq)
+    return _arrays.compiled_rows(_from_euler, (1,), _checks.vec3(angles, "angles"), seq=seq)
 
 
 def _from_euler(angles: Array, seq: str) -> Array:
@@ -185,7 +185,7 @@ def to_euler(q: Float[ArrayLike, "*batch 4"], seq: str) -> Float[Array, "*batch 
     subgradient of ``hypot`` at the origin). Everywhere else gradients are exact.
     """
     seq = _checks.euler_seq(seq)
-    return _arrays.compiled(_to_euler, _checks.quat(q), seq=seq)
+    return _arrays.compiled_rows(_to_euler, (1,), _checks.quat(q), seq=seq)
 
 
 def _to_euler_kernel(q: Array, seq: str) -> Array:

@@ -28,7 +28,7 @@ def angle(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch"]:
     cone ``2|v|``); there the gradient returned is the zero subgradient. At 180
     degrees (``w = 0``) the gradient with respect to ``w`` is 0 (a maximum).
     """
-    return _arrays.compiled(_rescaled_angle, _checks.quat(q))
+    return _arrays.compiled_rows(_rescaled_angle, (1,), _checks.quat(q))
 
 
 def _rescaled_angle(q: Array) -> Array:
@@ -41,7 +41,7 @@ def angle_between(p: Float[ArrayLike, "*#batch 4"], q: Float[ArrayLike, "*#batch
     Symmetric in ``p`` and ``q`` and invariant to the sign of either. Assumes unit inputs.
     """
     p, q = _checks.arguments(p=(p, "quaternion"), q=(q, "quaternion"))
-    return _arrays.compiled(_angle_between, p, q)
+    return _arrays.compiled_rows(_angle_between, (1, 1), p, q)
 
 
 def _angle_between(p: Array, q: Array) -> Array:

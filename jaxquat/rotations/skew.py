@@ -21,7 +21,7 @@ def hat(v: Float[ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     ``[[0, -v3, v2], [v3, 0, -v1], [-v2, v1, 0]]``: [S] eq. (4), [C] ``a~`` under
     eq. (9), [T] ``[w~]`` in eq. (37c).
     """
-    return _arrays.compiled(_arrays.hat, _checks.vec3(v))
+    return _arrays.compiled_rows(_arrays.hat, (1,), _checks.vec3(v))
 
 
 def vee(m: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
@@ -31,4 +31,4 @@ def vee(m: Float[ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     off-diagonal entries makes ``vee`` the orthogonal projection onto skew
     matrices, so a rounding-perturbed ``R^T dR/dt`` still gives the best vector.
     """
-    return _arrays.compiled(_arrays.vee, _checks.mat3(m))
+    return _arrays.compiled_rows(_arrays.vee, (2,), _checks.mat3(m))
