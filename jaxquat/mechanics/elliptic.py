@@ -168,7 +168,7 @@ def ellipj(u: Float[ArrayLike, "*#batch"], m: Float[ArrayLike, "*#batch"]) -> tu
     Euler-Poinsot motion: Landau and Lifshitz, Mechanics, section 37.
     """
     (u, m), dtype = _broadcast((u, m), ("u", "m"))
-    return tuple(x.astype(dtype) for x in _arrays.compiled(_ellipj, u, m))
+    return tuple(x.astype(dtype) for x in _arrays.compiled_rows(_ellipj, (0, 0), u, m))
 
 
 # The public functions' kernels are compiled whole: called eagerly they ran operation by
@@ -191,7 +191,7 @@ def ellipk(m: Float[ArrayLike, "*batch"]) -> Array:
     :func:`scipy.special.ellipk`.
     """
     (m,), dtype = _broadcast((m,), ("m",))
-    return _arrays.compiled(_ellipk, m).astype(dtype)
+    return _arrays.compiled_rows(_ellipk, (0,), m).astype(dtype)
 
 
 def _duplicate(x: Array, y: Array, z: Array) -> tuple[Array, Array, Array, Array]:
@@ -306,7 +306,7 @@ def elliprf(x: Float[ArrayLike, "*#batch"], y: Float[ArrayLike, "*#batch"], z: F
     1 - m sin^2 phi, 1)`` for ``|phi| <= pi/2``. As :func:`scipy.special.elliprf`.
     """
     args, dtype = _broadcast((x, y, z), ("x", "y", "z"))
-    return _arrays.compiled(rf, *args).astype(dtype)
+    return _arrays.compiled_rows(rf, (0, 0, 0), *args).astype(dtype)
 
 
 def elliprj(
@@ -323,7 +323,7 @@ def elliprj(
     :func:`scipy.special.elliprj` for ``p > 0``.
     """
     args, dtype = _broadcast((x, y, z, p), ("x", "y", "z", "p"))
-    return _arrays.compiled(_rj, *args).astype(dtype)
+    return _arrays.compiled_rows(_rj, (0, 0, 0, 0), *args).astype(dtype)
 
 
 def reduced_amplitude(sn: Array, cn: Array) -> tuple[Array, Array, Array]:
