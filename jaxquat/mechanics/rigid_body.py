@@ -107,7 +107,7 @@ def invariants(
     """
     inertia = validated(inertia)
     q, omega, inertia = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"), inertia=(inertia, "inertia"))
-    return _arrays.compiled(_invariants, q, omega, inertia)
+    return _arrays.compiled_rows(_invariants, (1, 1, 2), q, omega, inertia)
 
 
 def _invariants(q: Array, omega: Array, inertia: Array) -> dict[str, Array]:
