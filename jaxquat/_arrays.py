@@ -430,10 +430,12 @@ def compiled_rows(fn, cores: tuple[int, ...], *arrays: Any, **static):
     Why: XLA's CPU loops vectorise along the last axis of an array. A component ``x[..., i]`` of
     a ``(n, 3, 4)`` batch is ``(n, 3)``, whose inner loop runs over 3 elements; flattened it is
     ``(3 n,)``. Measured (float32, 3 x 10^5 rotations, one core, least of 7, value / gradient of
-    ``sum(f * W)``): ``to_rotvec`` on ``(10^5, 3, 4)`` 4.9 / 20.9 ms against 2.2 / 3.1 ms on
-    ``(3 x 10^5, 4)``, ``slerp`` 29.6 / 15.5 against 5.4 / 6.3 ms, ``from_rotvec`` 3.3 / 3.1
-    against 1.0 / 1.3 ms, ``multiply`` 1.25 / 1.23 against 0.43 / 0.43 ms. Flattening leading
-    axes that are contiguous is a reshape without a copy; the values are the same to the bit."""
+    ``sum(f * W)``), on ``(10^5, 3, 4)`` against ``(3 x 10^5, 4)``: ``to_rotvec`` 4.9 / 20.9
+    against 2.2 / 3.1 ms before, 4.0 / 3.4 ms flattened; ``slerp`` 29.6 / 15.5 against 5.4 / 6.3
+    ms before, 5.2 / 8.3 ms flattened. Not recovered: ``multiply`` 1.2 against 0.43 ms and
+    ``from_rotvec`` 3.0 against 0.85 ms, though XLA compiles the same fusion (it keeps the entry's
+    shape as the fusion's parameter and result). A reshape of contiguous leading axes copies
+    nothing; the values are the same to the bit (``docs/benchmarks.md``, session 54)."""
     return _jit(_flattened(fn, cores), tuple(sorted(static)), _trig.is_cpu())(*arrays, **static)
 
 
