@@ -894,6 +894,7 @@ EAGER_ONE_PROGRAM = {
     "polhode_period": lambda x: jq.polhode_period(x["v"], x["d"]),
     "attitude_covariance": lambda x: jq.attitude_covariance(x["m"], x["v"]),
     "invariants": lambda x: jq.invariants(x["q"], x["v"], x["i"]),
+    "random": lambda x: jq.random(x["k"], (23,), DTYPE),
 }
 
 
@@ -917,6 +918,7 @@ def test_an_eager_call_lowers_at_most_one_program(name):
     x |= {"m": jnp.asarray(rng.normal(size=(23, 3, 3)), DTYPE), "t": jnp.asarray(rng.uniform(0.1, 0.9, 23), DTYPE)}
     x["i"] = jnp.asarray(random_inertias(23, 23), DTYPE)
     x["d"] = jnp.asarray(rng.uniform(1.0, 1.9, size=(23, 3)), DTYPE)  # principal moments
+    x["k"] = jax.random.PRNGKey(23)
     jax.block_until_ready(x)
     with lowered_programs() as lowered:
         jax.block_until_ready(EAGER_ONE_PROGRAM[name](x))
