@@ -436,7 +436,7 @@ def compiled_rows(fn, cores: tuple[int, ...], *arrays: Any, **static):
     ``from_rotvec`` 3.0 against 0.85 ms, though XLA compiles the same fusion (it keeps the entry's
     shape as the fusion's parameter and result). A reshape of contiguous leading axes copies
     nothing; the values are the same to the bit (``docs/benchmarks.md``, session 54)."""
-    return _jit(_flattened(fn, cores), tuple(sorted(static)), _trig.is_cpu())(*arrays, **static)
+    return compiled(_flattened(fn, cores), *arrays, **static)
 
 
 @functools.cache
