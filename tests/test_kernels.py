@@ -425,10 +425,11 @@ def test_outer_sum_derivatives():
         lambda f: jax.jacrev(jax.jacfwd(f, args), args),
     )
     for fn, ref in pairs:
-        for transform in transforms:
-            got, want = jax.jit(transform(fn))(a, b, w), jax.jit(transform(ref))(a, b, w)
-            for g, r in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
-                np.testing.assert_allclose(g, r, **tol)
+        # each pair's eight derivatives in one program (eight of their own: the test took 6.8 s against
+        # 6.0 s in float64, 4.7 s against 3.7 s in float32, one core, session 56)
+        got, want = jax.jit(lambda *x, f=fn, r=ref: [[t(g)(*x) for t in transforms] for g in (f, r)])(a, b, w)
+        for g, r in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+            np.testing.assert_allclose(g, r, **tol)
         if X64:
             check_grads(fn, (a, b, w), order=2, modes=["fwd", "rev"])
 
