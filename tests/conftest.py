@@ -26,9 +26,18 @@ gradients in a subprocess with XLA's defaults. Set
 ``JAXQUAT_TEST_XLA_DEFAULTS=1`` to run the suite with XLA's default flags (the whole suite passed
 with them before the flag was set, and again in session 23: both passes in 13m50 against 9m16
 with the flag, on a 2-core EPYC).
-The flag is appended to any ``XLA_FLAGS`` already set, before JAX creates its CPU backend, and
+``--xla_cpu_parallel_codegen_split_count=1`` (XLA's default 32) compiles each program's LLVM
+module as one part instead of splitting it for threads to compile side by side: a test worker
+has one core (below), where the parts only add work. ``test_lie_solvers.py``,
+``test_kernels.py`` and ``test_torque_free.py`` in float64, one process on each core of this
+2-core machine: 143.4 and 136.9 s with the default, 132.9 and 127.5 s with one part (cores
+swapped between the two pairs, session 56); ``test_integrators.py``, ``test_contract.py`` and
+``test_optimal_control.py`` 427.9 against 400.0 s; the examples', notebooks', spline, derivative
+and time-optimal files 186.8 against 177.5 s (the other core). Set on every machine, so that
+every machine compiles the same code.
+The flags are appended to any ``XLA_FLAGS`` already set, before JAX creates its CPU backend, and
 the example and notebook subprocesses inherit it. Only for jaxlib before 0.11: jaxlib 0.11.2's XLA
-no longer knows the flag and aborts the process at start ("Unknown flag in XLA_FLAGS", seen on
+no longer knows the first flag and aborts the process at start ("Unknown flag in XLA_FLAGS", seen on
 the GPU machine of session 21), which would take down every test worker.
 """
 
@@ -49,6 +58,7 @@ if not os.environ.get("JAXQUAT_TEST_XLA_DEFAULTS") and _before("jaxlib", 0, 11):
         [
             os.environ.get("XLA_FLAGS", ""),
             "--xla_cpu_use_fusion_emitters=false",
+            "--xla_cpu_parallel_codegen_split_count=1",
         ]
     ).strip()
 
