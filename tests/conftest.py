@@ -1,6 +1,7 @@
 """Suite-wide settings: dtype from JAX_ENABLE_X64, strict rank promotion, hypothesis profile,
-XLA's cheaper CPU compilation, one OpenBLAS thread for LAPACK, the test workers' cores, their
-exit without JAX's clean-up and the files' order (the last four below, at their lines).
+XLA's cheaper CPU compilation, one OpenBLAS thread for LAPACK, the garbage collector's threshold,
+the test workers' cores, their exit without JAX's clean-up and the files' order (the last five
+below, at their lines).
 
 XLA compilation is most of the suite's time (52 % of the float64 pass, and 16 % more tracing).
 ``--xla_cpu_use_fusion_emitters=false`` (XLA's older elemental CPU emitters instead of its MLIR
@@ -41,6 +42,7 @@ no longer knows the first flag and aborts the process at start ("Unknown flag in
 the GPU machine of session 21), which would take down every test worker.
 """
 
+import gc
 import os
 import sys
 from importlib.metadata import version
@@ -71,6 +73,15 @@ if not os.environ.get("JAXQUAT_TEST_XLA_DEFAULTS") and _before("jaxlib", 0, 11):
 # on the cores of the machine; set before jax loads scipy's copy (pytest's plugins load only
 # NumPy's own), and inherited by the example and notebook subprocesses.
 os.environ["OPENBLAS_NUM_THREADS"] = "1"
+
+# Python's cyclic garbage collector runs a young-generation pass every 700 allocations net of
+# frees (its default); tracing and lowering a program allocate millions of short-lived objects,
+# and each pass walks the young ones. Every 50 000: test_lie_solvers.py, test_kernels.py and
+# test_torque_free.py in float64, one process on each core, 121.6 and 119.7 s against 116.9 and
+# 115.5 s (cores swapped between the pairs; the larger process's peak memory 2.10 against
+# 2.02 GB); 200 000 gave the same as 50 000 (116.3 s both), and moving everything alive after
+# collection to the permanent generation (``gc.freeze``) nothing more (session 56).
+gc.set_threshold(50_000, 50, 100)
 
 # Each test worker runs on its own share of the cores (with two workers on two cores: one core
 # each), set before XLA starts its threads, which then size their pools to that share: XLA's
