@@ -348,7 +348,8 @@ def test_gradients_match_finite_differences(name):
     directional derivative and against central differences of the weighted outputs."""
     fn, args, diff = _make(name, SMOOTH_Q)
     args = tuple(jnp.asarray(a, DTYPE) for a in args)
-    out, jac_rev, jac_fwd = jax.tree.map(np.asarray, _jacobians(name)(args))
+    jacobians = _jacobians(name)
+    out, jac_rev, jac_fwd = jax.tree.map(np.asarray, jacobians(args))
     # The contractions in NumPy (float64, as DTYPE in this pass): as eager JAX operations they
     # compiled a program per shape, about 150 small ones over the registry.
     weights = [np.random.default_rng(7).normal(size=o.shape) for o in out]
@@ -359,7 +360,6 @@ def test_gradients_match_finite_differences(name):
     assert np.all(np.isfinite(g_rev))
     scale = float(np.abs(g_rev).max()) + 1.0
     assert abs(float(g_fwd) - float(np.sum(g_rev * direction))) <= 1e-10 * scale * x.size
-    jacobians = _jacobians(name)
 
     def loss(y):  # the weighted outputs, from the values the Jacobians' program returns
         a = list(args)
