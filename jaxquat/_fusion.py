@@ -64,7 +64,8 @@ _one_loop_p.multiple_results = True
 
 def one_loop(xs: Sequence[Array]) -> tuple[Array, ...]:
     """``xs`` unchanged, computed on CPU in one XLA loop (with any element-wise work they share);
-    the same for their tangents in forward mode. All of one shape."""
+    the same for their tangents in forward mode. All of one shape; floating arrays in one loop per
+    dtype, integer and boolean ones (no tangents) in one loop per dtype of their own."""
     _check([jnp.shape(x) for x in xs])
     return tuple(_one_loop_p.bind(*xs, values=True))
 
@@ -93,14 +94,16 @@ def _abstract(*avals, values: bool):
 
 
 def _merged(*xs: Array) -> list[Array]:
-    """A variadic ``reduce`` over a new last axis of ``(x, -0.0)``, one per floating dtype (XLA
-    refuses a ``reduce`` of mixed precisions); other arrays pass as they are."""
+    """A variadic ``reduce`` over a new last axis of ``(x, pad)``, one per dtype (XLA refuses a
+    ``reduce`` of mixed types): the pad ``-0.0`` for floating arrays, ``0`` for integers and
+    ``False`` for booleans (combined by ``or``), each of which leaves ``x`` unchanged."""
     out = list(xs)
     nd = xs[0].ndim
-    idx = [i for i, x in enumerate(xs) if jnp.issubdtype(x.dtype, jnp.floating)]
-    pads = [lax.pad(xs[i][..., None], jnp.array(-0.0, xs[i].dtype), [(0, 0, 0)] * nd + [(0, 1, 0)]) for i in idx]
-    for i, y in zip(idx, _reduce_by_dtype(pads, nd, -0.0)):
-        out[i] = y
+    for kind, pad, combine in _PADS:
+        idx = [i for i, x in enumerate(xs) if jnp.issubdtype(x.dtype, kind)]
+        pads = [lax.pad(xs[i][..., None], jnp.array(pad, xs[i].dtype), [(0, 0, 0)] * nd + [(0, 1, 0)]) for i in idx]
+        for i, y in zip(idx, _reduce_by_dtype(pads, nd, pad, combine)):
+            out[i] = y
     return out
 
 
@@ -259,9 +262,17 @@ def _add_pairs(a, b):
     return tuple(u + v for u, v in zip(a, b))
 
 
-def _reduce_by_dtype(xs: Sequence[Array], axis: int, init: float = 0.0) -> list[Array]:
-    """The sums of ``xs`` over ``axis`` from ``init``, as one variadic ``reduce`` per dtype (XLA
-    refuses a ``reduce`` of mixed precisions)."""
+def _or_pairs(a, b):
+    return tuple(u | v for u, v in zip(a, b))
+
+
+# (dtype kind, the pad that leaves an element unchanged, how a reduce combines two) for _merged.
+_PADS = ((jnp.floating, -0.0, _add_pairs), (jnp.integer, 0, _add_pairs), (jnp.bool_, False, _or_pairs))
+
+
+def _reduce_by_dtype(xs: Sequence[Array], axis: int, init: float = 0.0, combine=_add_pairs) -> list[Array]:
+    """The reductions of ``xs`` over ``axis`` from ``init`` by ``combine`` (sums by default), as
+    one variadic ``reduce`` per dtype (XLA refuses a ``reduce`` of mixed precisions)."""
     out = list(xs)
     for dtype in dict.fromkeys(x.dtype for x in xs):
         idx = [i for i, x in enumerate(xs) if x.dtype == dtype]
@@ -270,7 +281,7 @@ def _reduce_by_dtype(xs: Sequence[Array], axis: int, init: float = 0.0) -> list[
         # skips a variadic reduce (a tuple): one_loop of ten entries of 10^5 constant rows took
         # 2.3 s to fold (4.7 s in euler_parameter_augmented_system's gradient), 0.26 s now.
         start = lax.optimization_barrier(jnp.array(init, dtype))
-        summed = lax.reduce([xs[i] for i in idx], [start] * len(idx), _add_pairs, (axis,))
+        summed = lax.reduce([xs[i] for i in idx], [start] * len(idx), combine, (axis,))
         for i, y in zip(idx, summed):
             out[i] = y
     return out

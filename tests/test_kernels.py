@@ -86,6 +86,27 @@ def test_one_loop_passes_any_floats_and_their_cotangents_unchanged(seed):
         np.testing.assert_array_equal(got, want)
 
 
+def test_one_loop_passes_integers_and_booleans_unchanged_in_a_loop_per_dtype():
+    """Integer and boolean arrays (the torque-free roles and mask) pass to the bit, the extremes of
+    each integer type included, beside floats whose gradient is unchanged; on CPU each dtype is
+    one variadic ``reduce`` (floats, int32 and bool: three)."""
+    ints = jnp.asarray([0, 1, -1, 2, np.iinfo(np.int32).max, np.iinfo(np.int32).min], jnp.int32)
+    flags = jnp.asarray([True, False, False, True, True, False])
+    x = jnp.linspace(-1.0, 2.0, 6, dtype=DTYPE)
+
+    def through(x, ints, flags):
+        return _fusion.one_loop_both_ways((x * x, ints, flags, ints * 2, ~flags))
+
+    got = jax.jit(through)(x, ints, flags)
+    for a, b in zip(got[1:], (ints, flags, ints * 2, ~flags)):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
+    grad = jax.jit(jax.grad(lambda x: jnp.sum(through(x, ints, flags)[0] * jnp.where(flags, 1.0, 2.0))))(x)
+    np.testing.assert_allclose(grad, 2 * x * jnp.where(flags, 1.0, 2.0), rtol=EPS)
+    text = jax.jit(through).lower(x, ints, flags).as_text()
+    assert text.count("stablehlo.reduce") == (3 if jax.default_backend() == "cpu" else 0)
+
+
 _through_plain = jax.jit(lambda x: _through(None, x))
 
 

@@ -40,7 +40,8 @@ in ``tests/test_torque_free.py``.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from collections.abc import Sequence
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -48,7 +49,7 @@ import numpy as np
 from jax import Array
 from jaxtyping import ArrayLike, Float
 
-from .. import _arrays, _checks, _fusion, _quaternion, _rotation, _safe, _trig
+from .. import _arrays, _checks, _fusion, _quaternion, _rotation, _trig
 from .elliptic import (
     agm,
     am_given,
@@ -76,31 +77,34 @@ def _validated_moments(moments, name: str = "moments") -> Array:
     return moments
 
 
-def _roles(moments: Array, omega: Array):
+def _roles(moments: list[Array], omega: list[Array]):
     """Axis indices ``(a, b, c)``: ``a`` the axis the polhode circles (the largest moment when
-    ``|L|^2 > 2 E I_mid``, else the smallest), ``b`` the middle one, ``c`` the other extreme."""
+    ``|L|^2 > 2 E I_mid``, else the smallest), ``b`` the middle one, ``c`` the other extreme.
+    ``moments`` and ``omega`` by components."""
+    m0, m1, m2 = moments
     # The stable argsort's order, without a sort: the first smallest, the last largest.
-    lo = jnp.argmin(moments, axis=-1)
-    hi = 2 - jnp.argmax(moments[..., ::-1], axis=-1)
+    lo = jnp.where((m0 <= m1) & (m0 <= m2), 0, jnp.where(m1 <= m2, 1, 2))
+    hi = jnp.where((m2 >= m1) & (m2 >= m0), 2, jnp.where(m1 >= m0, 1, 0))
     mid = 3 - lo - hi
     i_mid = _pick(moments, mid)
     # L^2 - 2 E I_mid, written as a sum of terms (no subtraction of large numbers).
-    p_mid = _arrays.dot(moments * (moments - i_mid[..., None]), omega * omega)
+    p_mid = sum(moments[i] * (moments[i] - i_mid) * (omega[i] * omega[i]) for i in range(3))
     around_largest = p_mid > 0
     a = jnp.where(around_largest, hi, lo)
     c = jnp.where(around_largest, lo, hi)
     return a, mid, c
 
 
-def _pick(x: Array, idx: Array) -> Array:
-    """``x[..., idx]`` per element, as selects: the derivative of ``take_along_axis`` is a
-    scatter, and the dozen of them made ``euler_poinsot``'s gradient compile 25 % slower
-    (7.0 s -> 5.5 s for a 201-time trajectory, float64, this 2-core CPU)."""
-    return jnp.where(idx == 0, x[..., 0], jnp.where(idx == 1, x[..., 1], x[..., 2]))
+def _pick(x: Sequence[Array], idx: Array) -> Array:
+    """``x[idx]`` of components ``x`` per element, as selects: the derivative of
+    ``take_along_axis`` is a scatter, and the dozen of them made ``euler_poinsot``'s gradient
+    compile 25 % slower (7.0 s -> 5.5 s for a 201-time trajectory, float64, this 2-core CPU)."""
+    return jnp.where(idx == 0, x[0], jnp.where(idx == 1, x[1], x[2]))
 
 
-def _parameters(moments: Array, w: Array, a: Array, b: Array, c: Array):
-    """Moment gaps, ``P_c``, the parameter ``m``, its complement ``1 - m`` and the rate ``lambda``.
+def _parameters(moments: list[Array], w: list[Array], a: Array, b: Array, c: Array):
+    """Moment gaps, ``P_c``, the parameter ``m``, its complement ``1 - m`` and the rate ``lambda``
+    (``moments`` and ``w`` by components).
 
     ``P_a, P_b, P_c`` are sums of non-negative terms (``P_b`` up to rounding),
     so ``m`` and ``1 - m`` carry full relative precision, also near the separatrix.
@@ -123,12 +127,13 @@ def _parameters(moments: Array, w: Array, a: Array, b: Array, c: Array):
     pb = pb + jax.lax.stop_gradient(jnp.maximum(pb, 0.0) - pb)
     m = dbc * pa / (dab * pc)
     mc = dac * pb / (dab * pc)
-    lam = jnp.sqrt(dab * pc / jnp.prod(moments, axis=-1))
+    lam = jnp.sqrt(dab * pc / (moments[0] * moments[1] * moments[2]))
     return dab, dac, dbc, pc, m, mc, lam
 
 
-def _safe_state(moments: Array, omega: Array):
-    """Roles, the mask of states the elliptic formulas cover, and inputs made safe elsewhere.
+def _safe_state(moments: list[Array], omega: list[Array]):
+    """Roles, the mask of states the elliptic formulas cover, and inputs made safe elsewhere (all
+    by components).
 
     Not covered: steady rotations that are not about the polhode axis ``a``
     (``w_a = 0``) and bodies with ``I_a`` equal to another moment.
@@ -136,16 +141,17 @@ def _safe_state(moments: Array, omega: Array):
     a, b, c = _roles(moments, omega)
     ia, ib, ic = _pick(moments, a), _pick(moments, b), _pick(moments, c)
     general = (_pick(omega, a) != 0) & (ia != ib) & (ia != ic)
-    safe_w = jnp.where(general[..., None], omega, jnp.asarray([1.0, 0.5, 0.25], omega.dtype))
-    safe_i = jnp.where(general[..., None], moments, jnp.asarray([1.0, 2.0, 3.0], moments.dtype))
-    return general, safe_w, safe_i, _roles(safe_i, safe_w)
+    safe_w = [jnp.where(general, x, v) for x, v in zip(omega, (1.0, 0.5, 0.25))]
+    safe_i = [jnp.where(general, x, v) for x, v in zip(moments, (1.0, 2.0, 3.0))]
+    out = _fusion.one_loop_both_ways(jnp.broadcast_arrays(general, *safe_w, *safe_i, *_roles(safe_i, safe_w)))
+    return out[0], list(out[1:4]), list(out[4:7]), out[7:]
 
 
 class _Motion(NamedTuple):
     """What the elliptic solution needs of one body and its initial state, formed once for all
     its times (:func:`_motion`; names as in the module docstring, ``s`` the sign of ``w_a``,
-    ``wb_hat = A_b sn(u_0)``, ``abs_wa = A_a dn(u_0)``). The fields from ``e`` on end in a component
-    axis; ``agm`` is the AGM of ``m`` (:func:`jaxquat.mechanics.elliptic.agm`) and ``rd_complete``
+    ``wb_hat = A_b sn(u_0)``, ``abs_wa = A_a dn(u_0)``). The fields from ``e`` on are vectors and a
+    quaternion as tuples of their components; ``agm`` is the AGM of ``m`` (:func:`jaxquat.mechanics.elliptic.agm`) and ``rd_complete``
     ``R_D(0, 1, 1 - m)`` (:func:`jaxquat.mechanics.elliptic.complete_rd`)."""
 
     m: Array
@@ -173,32 +179,42 @@ class _Motion(NamedTuple):
     rd_complete: Array
     chi0: Array
     u0: Array  # only rounded: no derivatives
-    e: Array  # the fixed body axis +-e_a
-    moments: Array
-    ea: Array
-    eb: Array
-    ec: Array
-    left: Array  # q_0 p_0*, a quaternion
+    e: tuple[Array, ...]  # the fixed body axis +-e_a, by components (as the five below)
+    moments: tuple[Array, ...]
+    ea: tuple[Array, ...]
+    eb: tuple[Array, ...]
+    ec: tuple[Array, ...]
+    left: tuple[Array, ...]  # q_0 p_0*, a quaternion
     agm: tuple[Array, Array]
 
     def at_times(self, t: Array) -> _Motion:
         """Each field broadcast to the shape of the times ``t`` (``batch + T``), once: reverse mode
         then sums each per-body cotangent over the times once, not at every use."""
         extra = (None,) * (t.ndim - self.m.ndim)
+
+        def spread(x):
+            return jnp.broadcast_to(x[(..., *extra)], t.shape)
+
         fields = {
-            name: jnp.broadcast_to(x[(..., *extra)], t.shape)
-            if x.ndim == self.m.ndim
-            else jnp.broadcast_to(x[(..., *extra, slice(None))], t.shape + x.shape[-1:])
+            name: tuple(spread(y) for y in x) if isinstance(x, tuple) else spread(x)
             for name, x in self._asdict().items()
             if name != "agm"
         }
-        return _Motion(**fields, agm=(self.agm[0][(..., *extra)], self.agm[1][(..., *extra)]))
+        agm = (self.agm[0][(..., *extra)], self.agm[1][(..., *extra)])
+        return _Motion(**fields, agm=agm)  # pyright: ignore[reportArgumentType]
 
 
-def _motion(q0: Array, w0: Array, moments: Array, a: Array, b: Array, c: Array) -> _Motion:
+def _motion(q0: Array, w0: list[Array], moments: list[Array], a: Array, b: Array, c: Array) -> _Motion:
     """The per-body part of the elliptic solution (states that are not steady rotations; see the
     module docstring): the parameters, the AGM of ``m``, the amplitude and the precession
-    integrals at time 0, the complete integrals and the constant left factor of ``q(t)``."""
+    integrals at time 0, the complete integrals and the constant left factor of ``q(t)``.
+    ``w0`` and ``moments`` by components.
+
+    Its scalars are formed in two loops over the bodies (``_fusion``), one before the loops of
+    the AGM and Carlson's integrals and one after them: XLA's CPU compiler otherwise gives each
+    per-body array a kernel of its own that evaluates the roles and the parameters again (61 of
+    ``simulate``'s 126 kernels on its default path, where each kernel costs about 13 ms of compiling
+    even when it is small)."""
     ia, ib, ic = _pick(moments, a), _pick(moments, b), _pick(moments, c)
     wa, wb, wc = _pick(w0, a), _pick(w0, b), _pick(w0, c)
     dab, dac, dbc, pc, m, mc, lam = _parameters(moments, w0, a, b, c)
@@ -212,63 +228,43 @@ def _motion(q0: Array, w0: Array, moments: Array, a: Array, b: Array, c: Array) 
     abs_wa = s * wa  # = A_a dn(u)
     dn0 = abs_wa / amp_a
     sn0, cn0 = _unit_pair(r_cb * wb_hat, wc)
-    ell = jnp.sqrt(_safe.norm_sq(moments * w0))
+    momentum = [moments[i] * w0[i] for i in range(3)]
+    ell = jnp.sqrt(momentum[0] * momentum[0] + momentum[1] * momentum[1] + momentum[2] * momentum[2])
     nu = ia * dbc / (ic * dab)
     kb, kc = jnp.sqrt(ib / dab), jnp.sqrt(ic / dac)
+    dtype = ell.dtype
+    ea, eb, ec = ([(i == k).astype(dtype) for k in range(3)] for i in (a, b, c))
+    e = [s * x for x in ea]  # the fixed body axis
+    p0 = _toward([x / ell for x in momentum], e)  # takes the unit momentum onto e
+    left = _quaternion.multiply_dense(_arrays.components(q0), [p0[0], -p0[1], -p0[2], -p0[3]])
     # The amplitude at 0 as (sn, cn) from the rates (A_c cn = w_c, A_b sn = w_b_hat), not as an angle:
     # near a spin about the middle axis cn is tiny and an angle near pi/2 would lose eps / cn in the
     # integrals. One Carlson evaluation gives F and Pi at it and the complete integrals (K and
     # Pi(-nu | m)); the complete ones are used for every time at which the amplitude has turned.
     h0, s0, c0 = reduced_amplitude(sn0, cn0)
+    scalars = [m, mc, lam, amp_a, r_cb, g, sigma, s, wb_hat, abs_wa, dn0, wc, sn0, cn0, ell, nu, kb, kc, ia, ic]
+    scalars += [_chi(_trig.atan2(sn0, cn0), sn0, cn0, kb, kc), h0, s0, c0, partial_y(c0, m, mc)]
+    vectors = [e, moments, ea, eb, ec, left]
+    out = iter(_fusion.one_loop_both_ways(jnp.broadcast_arrays(*scalars, *(x for v in vectors for x in v))))
+    scalars = [next(out) for _ in scalars]
+    vectors = [tuple(next(out) for _ in v) for v in vectors]
+    m, mc, nu, h0, s0, c0, y0 = scalars[0], scalars[1], scalars[15], *scalars[-4:]
     f, pi = legendre(
         jnp.stack([s0, jnp.ones_like(s0)]),
         jnp.stack([c0 * c0, jnp.broadcast_to(tiny(c0), c0.shape)]),
-        jnp.stack([partial_y(c0, m, mc), complete_y(mc, True)]),
+        jnp.stack([y0, complete_y(mc, True)]),
         -nu[None],
     )
-    pi_full = pi[1]
-    pi0 = 2 * h0 * pi_full + pi[0]
     # The whole turns of the amplitude at t come from am(u0 + lambda t), u0 = F(am u0) = 2 h0 K + F(r0)
     # (only rounded, so formed without derivatives).
     agm_of_m = jax.lax.stop_gradient(agm(m, mc))
     u0 = jax.lax.stop_gradient(h0 * jnp.pi / agm_of_m[1] + f[0])
-    e = s[..., None] * jax.nn.one_hot(a, 3, dtype=w0.dtype)  # the fixed body axis
-    p0 = _rotation.minimal_rotation(e, moments * w0 / ell[..., None])  # takes the unit momentum onto e
-    ea, eb, ec = (jax.nn.one_hot(i, 3, dtype=w0.dtype) for i in (a, b, c))
-    return _Motion(
-        m,
-        mc,
-        lam,
-        amp_a,
-        r_cb,
-        g,
-        sigma,
-        s,
-        wb_hat,
-        abs_wa,
-        dn0,
-        wc,
-        sn0,
-        cn0,
-        ell,
-        nu,
-        kb,
-        kc,
-        ia,
-        ic,
-        pi_full=pi_full,
-        pi0=pi0,
-        rd_complete=complete_rd(mc),
-        chi0=_chi(_trig.atan2(sn0, cn0), sn0, cn0, kb, kc),
-        u0=u0,
-        e=e,
-        moments=moments,
-        ea=ea,
-        eb=eb,
-        ec=ec,
-        left=_quaternion.multiply(q0, _quaternion.conjugate(p0)),
-        agm=agm_of_m,
-    )
+    pi_full, pi0, u0 = _fusion.one_loop_both_ways((pi[1], 2 * h0 * pi[1] + pi[0], u0))
+    names = ("m", "mc", "lam", "amp_a", "r_cb", "g", "sigma", "s", "wb_hat", "abs_wa", "dn0", "wc", "sn0", "cn0")
+    names += ("ell", "nu", "kb", "kc", "ia", "ic", "chi0")
+    fields: dict[str, Any] = dict(zip(names, scalars), pi_full=pi_full, pi0=pi0, rd_complete=complete_rd(mc), u0=u0)
+    fields.update(zip(("e", "moments", "ea", "eb", "ec", "left"), vectors))
+    return _Motion(**fields, agm=agm_of_m)
 
 
 def _chi(phi: Array, sn: Array, cn: Array, kb: Array, kc: Array) -> Array:
@@ -331,17 +327,22 @@ def _attitude(k: _Motion, psi: Array, wa: Array, wb: Array, wc: Array) -> tuple[
     positive (the general :func:`jaxquat._rotation.minimal_rotation` handles both).
     Written on components, the vector and quaternion forms' gradient compiled into a dozen loops
     over ``(..., 3)`` and ``(..., 4)`` elements, each evaluating the shared work again."""
-    ea, eb, ec, e, moments = (_arrays.components(x) for x in (k.ea, k.eb, k.ec, k.e, k.moments))
+    ea, eb, ec, e, moments = k.ea, k.eb, k.ec, k.e, k.moments
     w = [wa * ea[i] + wb * eb[i] + wc * ec[i] for i in range(3)]
-    n = [moments[i] * w[i] / k.ell for i in range(3)]
+    p = _toward([moments[i] * w[i] / k.ell for i in range(3)], e)
+    sin_half, cos_half = _trig.sincos(psi / 2)
+    r = [cos_half] + [x * sin_half for x in e]
+    return _quaternion.multiply_dense(_quaternion.multiply_dense(list(k.left), r), p), w
+
+
+def _toward(n: Sequence[Array], e: Sequence[Array]) -> list[Array]:
+    """The components of the minimal rotation taking ``n`` onto the unit ``e``, for ``n.e >= 0``:
+    ``(|n| + n.e, n x e)`` normalised (its norm squared is ``2 |n| (|n| + n.e)``)."""
     norm = jnp.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
     scalar = norm + (n[0] * e[0] + n[1] * e[1] + n[2] * e[2])
     inv = jax.lax.rsqrt(2 * norm * scalar)
     cross = (n[1] * e[2] - n[2] * e[1], n[2] * e[0] - n[0] * e[2], n[0] * e[1] - n[1] * e[0])
-    p = [scalar * inv] + [x * inv for x in cross]
-    sin_half, cos_half = _trig.sincos(psi / 2)
-    r = [cos_half] + [x * sin_half for x in e]
-    return _quaternion.multiply_dense(_quaternion.multiply_dense(_arrays.components(k.left), r), p), w
+    return [scalar * inv] + [x * inv for x in cross]
 
 
 def _unit_pair(y: Array, x: Array) -> tuple[Array, Array]:
@@ -369,7 +370,7 @@ def propagate(q0: Array, omega0: Array, moments: Array, t: Array) -> tuple[Array
     ``R_C`` vectorised, the attitude on components): 16-18 ms and 31-37 ms, the gradient 76-79 and
     143-152 ms (``docs/integrators.md``, "The closed form's derivatives")."""
     times = (None,) * (t.ndim - (q0.ndim - 1))
-    general, safe_w, safe_i, roles = _safe_state(moments, omega0)
+    general, safe_w, safe_i, roles = _safe_state(_arrays.components(moments), _arrays.components(omega0))
     q_gen, w_gen = _state_at(_motion(q0, safe_w, safe_i, *roles).at_times(t), t)
     # The steady rotation q0 Exp(w0 t) and the selects on components, in the one loop of the rest.
     q0, omega0, general = q0[(..., *times, slice(None))], omega0[(..., *times, slice(None))], general[(..., *times)]
@@ -452,7 +453,7 @@ def polhode_period(
 
 
 def _polhode_period(omega0: Array, moments: Array) -> Array:
-    general, safe_w, safe_i, roles = _safe_state(moments, omega0)
+    general, safe_w, safe_i, roles = _safe_state(_arrays.components(moments), _arrays.components(omega0))
     *_, m, mc, lam = _parameters(safe_i, safe_w, *roles)
     period = 4 * quarter_period(m, mc) / lam
     return jnp.where(general & (mc > 0), period, jnp.inf)
