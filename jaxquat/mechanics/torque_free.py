@@ -151,8 +151,9 @@ class _Motion(NamedTuple):
     """What the elliptic solution needs of one body and its initial state, formed once for all
     its times (:func:`_motion`; names as in the module docstring, ``s`` the sign of ``w_a``,
     ``wb_hat = A_b sn(u_0)``, ``abs_wa = A_a dn(u_0)``). The fields from ``e`` on are vectors and a
-    quaternion as tuples of their components; ``agm`` is the AGM of ``m`` (:func:`jaxquat.mechanics.elliptic.agm`) and ``rd_complete``
-    ``R_D(0, 1, 1 - m)`` (:func:`jaxquat.mechanics.elliptic.complete_rd`)."""
+    quaternion as tuples of their components; ``agm`` is the AGM of ``m``
+    (:func:`jaxquat.mechanics.elliptic.agm`) and ``rd_complete`` ``R_D(0, 1, 1 - m)``
+    (:func:`jaxquat.mechanics.elliptic.complete_rd`)."""
 
     m: Array
     mc: Array
