@@ -47,24 +47,27 @@ def tiny(x: Array) -> Array:
     return jnp.asarray(jnp.finfo(x.dtype).tiny, x.dtype)
 
 
-def agm(m: Array, mc: Array) -> tuple[Array, Array]:
-    """``(a_n, b_n, c_n)`` for ``n = 1..N`` (stacked on a new leading axis) of the AGM of
-    ``(1, sqrt(mc))``, and ``a_N``."""
+def agm(m: Array, mc: Array) -> tuple[tuple[Array, Array, Array], Array]:
+    """``(a_n, b_n, c_n)`` for ``n = 1..N`` (each stacked on a new leading axis) of the AGM of
+    ``(1, sqrt(mc))``, and ``a_N``.
+
+    ``c_{n+1} = c_n^2 / (4 a_{n+1})`` (``c = (a - b) / 2`` without cancellation), from ``c_0^2 = m``.
+    One scan writes the three sequences (stacking a first step formed apart took five more XLA
+    kernels, each compiled on its own)."""
     b0 = jnp.sqrt(jnp.maximum(mc, tiny(mc)))
-    first = ((1 + b0) / 2, jnp.sqrt(b0), m / (2 * (1 + b0)))  # c_1 = (1 - b0)/2 without cancellation
 
     def step(abc, _):
-        a, b, c = abc
+        a, b, c2 = abc  # c2 = c_n^2
         a_next = (a + b) / 2
-        nxt = (a_next, jnp.sqrt(a * b), c * c / (4 * a_next))  # c = (a - b)/2 without cancellation
-        return nxt, nxt
+        b_next, c_next = jnp.sqrt(a * b), c2 / (4 * a_next)
+        return (a_next, b_next, c_next * c_next), (a_next, b_next, c_next)
 
-    last, rest = lax.scan(step, first, None, length=_AGM_STEPS - 1)
-    steps = jnp.concatenate([jnp.stack(first)[:, None], jnp.stack(rest)], axis=1)
-    return steps, last[0]
+    start = jnp.broadcast_arrays(jnp.ones_like(b0), b0, m)
+    _, steps = lax.scan(step, tuple(_fusion.one_loop(start)), None, length=_AGM_STEPS)
+    return steps, steps[0][-1]
 
 
-def amplitude(u: Array, steps: Array, a_last: Array) -> Array:
+def amplitude(u: Array, steps: tuple[Array, Array, Array], a_last: Array) -> Array:
     """The Jacobi amplitude ``am(u | m)`` (unwrapped: it grows with ``u``) by the Landen recurrence.
 
     The textbook step ``phi <- (phi + asin((c_n/a_n) sin phi)) / 2`` loses half the
@@ -105,7 +108,9 @@ def complete_rd(mc: Array) -> Array:
 
 
 @jax.custom_jvp
-def am_given(u: Array, m: Array, mc: Array, rd_complete: Array, steps: Array, a_last: Array) -> Array:
+def am_given(
+    u: Array, m: Array, mc: Array, rd_complete: Array, steps: tuple[Array, Array, Array], a_last: Array
+) -> Array:
     """The unwrapped amplitude ``am(u | m)`` from the AGM ``(steps, a_last) = agm(m, mc)`` of its
     parameter and ``rd_complete = complete_rd(mc)``, formed once for many ``u`` (the torque-free
     flow's saved times share one per body). ``rd_complete`` enters the derivative only; formed
@@ -244,8 +249,9 @@ def carlson(x: Array, y: Array, z: Array, p: Array) -> tuple[Array, Array]:
     at 101 000 points, one core of this 2-core CPU): 192 -> 68 ms in float32, 337 -> 137 ms in
     float64, against 19 / 37 ms for the value; ``simulate``'s closed form (1000 bodies x 101 times)
     gradient 280 -> 154 ms and 510 -> 283 ms."""
+    # The loop's inputs and its invariant in one loop (each an XLA kernel of its own otherwise).
     x, y, z, p = jnp.broadcast_arrays(x, y, z, p)
-    delta = (p - x) * (p - y) * (p - z)
+    x, y, z, p, zero, delta = _fusion.one_loop_both_ways((x, y, z, p, jnp.zeros_like(x), (p - x) * (p - y) * (p - z)))
 
     @jax.checkpoint
     def step(i, carry):
@@ -257,7 +263,7 @@ def carlson(x: Array, y: Array, z: Array, p: Array) -> tuple[Array, Array]:
         total = total + scale / d * _rc_one(delta * scale**3 / (d * d))
         return _fusion.one_loop_both_ways(((x + lam) / 4, (y + lam) / 4, (z + lam) / 4, (p + lam) / 4, total))
 
-    carry = lax.fori_loop(0, _DUPLICATION_STEPS, step, (x, y, z, p, jnp.zeros_like(x)))
+    carry = lax.fori_loop(0, _DUPLICATION_STEPS, step, (x, y, z, p, zero))
     x, y, z, p, total = _fusion.one_loop_backward(carry)
     return _rf_series(x, y, z), 6 * total + _rj_tail(x, y, z, p)
 
@@ -282,7 +288,7 @@ def rd(x: Array, y: Array, z: Array) -> Array:
     ``atan``, an ``atanh`` and a series per step, all evaluated at 0 here). Measured (101 000
     points, one core, float32 / float64): 18.1 / 32.5 ms through :func:`carlson` as it was before
     its ``R_C`` was vectorised, 1.9 / 4.1 ms by this loop."""
-    x, y, z = jnp.broadcast_arrays(x, y, z)
+    x, y, z, zero = _fusion.one_loop(jnp.broadcast_arrays(x, y, z, jnp.zeros_like(x)))
 
     def step(i, carry):
         x, y, z, total = carry
@@ -291,7 +297,7 @@ def rd(x: Array, y: Array, z: Array) -> Array:
         total = total + scale / (sz * (z + lam))
         return _fusion.one_loop(((x + lam) / 4, (y + lam) / 4, (z + lam) / 4, total))
 
-    x, y, z, total = lax.fori_loop(0, _DUPLICATION_STEPS, step, (x, y, z, jnp.zeros_like(x)))
+    x, y, z, total = lax.fori_loop(0, _DUPLICATION_STEPS, step, (x, y, z, zero))
     return 3 * total + _rj_tail(x, y, z, z)
 
 

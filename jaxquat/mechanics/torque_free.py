@@ -186,7 +186,7 @@ class _Motion(NamedTuple):
     eb: tuple[Array, ...]
     ec: tuple[Array, ...]
     left: tuple[Array, ...]  # q_0 p_0*, a quaternion
-    agm: tuple[Array, Array]
+    agm: tuple[tuple[Array, Array, Array], Array]
 
     def at_times(self, t: Array) -> _Motion:
         """Each field broadcast to the shape of the times ``t`` (``batch + T``), once: reverse mode
@@ -201,7 +201,7 @@ class _Motion(NamedTuple):
             for name, x in self._asdict().items()
             if name != "agm"
         }
-        agm = (self.agm[0][(..., *extra)], self.agm[1][(..., *extra)])
+        agm = (tuple(x[(..., *extra)] for x in self.agm[0]), self.agm[1][(..., *extra)])
         return _Motion(**fields, agm=agm)  # pyright: ignore[reportArgumentType]
 
 
