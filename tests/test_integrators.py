@@ -593,14 +593,14 @@ def test_scan_path_gradient_and_unit_norm_in_float32_too():
 
 def test_a_batch_larger_than_a_chunk_is_solved_chunk_by_chunk_with_the_same_values_and_derivatives(monkeypatch):
     """The scan path solves a batch of more than ``_CHUNK_BYTES`` per component array in chunks,
-    one after another, each rematerialised in reverse mode (``simulation._in_chunks``: at 10^5
+    one after another, each rematerialised in reverse mode (``numerical_solve._in_chunks``: at 10^5
     bodies the gradient's peak memory 3.2 -> 1.0 GB in float32). Here chunks of 3 bodies (10
     bodies: 4 chunks, the last padded with copies of the first body). The struct-of-arrays step
     sees batches of 3, and the states, the gradient in the initial rates, the torque's gains and
     the per-body inertia, and a ``jvp`` in the gains are those of the batch solved whole (LieEuler:
     the chunking does not depend on the tableau, and its one stage compiles fastest), and with
     one tensor shared by the batch the states too."""
-    from jaxquat.integration import simulation, struct_of_arrays
+    from jaxquat.integration import numerical_solve, struct_of_arrays
 
     rng = np.random.default_rng(11)
     q0 = jq.normalize(jnp.asarray(rng.normal(size=(10, 4)), DTYPE))
@@ -623,7 +623,7 @@ def test_a_batch_larger_than_a_chunk_is_solved_chunk_by_chunk_with_the_same_valu
     batches = []
     original = struct_of_arrays.solve
     monkeypatch.setattr(struct_of_arrays, "solve", lambda *a, **k: batches.append(a[3].shape[0]) or original(*a, **k))
-    monkeypatch.setattr(simulation, "_CHUNK_BYTES", 3 * jnp.dtype(DTYPE).itemsize)
+    monkeypatch.setattr(numerical_solve, "_CHUNK_BYTES", 3 * jnp.dtype(DTYPE).itemsize)
     chunked = run(w0, gains, inertia)
     assert len(batches) >= 3 and set(batches) == {3}, batches
     names = ["q", "omega", "grad w0", "grad gains", "grad inertia", "jvp q", "jvp omega", "shared q", "shared omega"]
@@ -680,7 +680,7 @@ def test_simulate_s_chunks_with_segmented_steps_are_not_rematerialised_and_agree
     (a third forward pass). Chunks of 3 bodies with 20 LieEuler steps in segments of 4: the states,
     the gradient in ``w0`` and a ``jvp`` equal the batch's solved whole and unsegmented."""
     from jaxquat import _trig
-    from jaxquat.integration import fixed_step, simulation
+    from jaxquat.integration import fixed_step, numerical_solve
 
     rng = np.random.default_rng(13)
     q0 = jq.normalize(jnp.asarray(rng.normal(size=(10, 4)), DTYPE))
@@ -702,14 +702,14 @@ def test_simulate_s_chunks_with_segmented_steps_are_not_rematerialised_and_agree
 
     whole = run()
     segments, remats = [], []
-    original_segments, original_chunks = fixed_step._in_segments, simulation._in_chunks
+    original_segments, original_chunks = fixed_step._in_segments, numerical_solve._in_chunks
     monkeypatch.setattr(fixed_step, "_in_segments", lambda *a: segments.append(a[3]) or original_segments(*a))
     monkeypatch.setattr(
-        simulation, "_in_chunks", lambda *a, remat: remats.append(remat) or original_chunks(*a, remat=remat)
+        numerical_solve, "_in_chunks", lambda *a, remat: remats.append(remat) or original_chunks(*a, remat=remat)
     )
     monkeypatch.setattr(_trig, "_cpu", lambda: True)
     monkeypatch.setattr(fixed_step, "_SEGMENT_BYTES", 0)
-    monkeypatch.setattr(simulation, "_CHUNK_BYTES", 3 * jnp.dtype(DTYPE).itemsize)
+    monkeypatch.setattr(numerical_solve, "_CHUNK_BYTES", 3 * jnp.dtype(DTYPE).itemsize)
     segmented = run()
     assert set(segments) == {4} and set(remats) == {False}, (segments, remats)
     for a, b in zip(jax.tree.leaves(segmented), jax.tree.leaves(whole), strict=True):
@@ -723,7 +723,7 @@ def test_an_adaptive_batch_larger_than_a_chunk_is_solved_chunk_by_chunk_with_the
     Chunks of 3 bodies (10 bodies, the last chunk padded): the states, each body's step count
     and the gradient in the torque's gains and the initial rates are the batch's solved whole
     (``diffrax.Heun``: the chunking does not depend on the solver, and its program is small)."""
-    from jaxquat.integration import simulation
+    from jaxquat.integration import numerical_solve
 
     rng = np.random.default_rng(12)
     q0 = jq.normalize(jnp.asarray(rng.normal(size=(10, 4)), DTYPE))
@@ -742,7 +742,7 @@ def test_an_adaptive_batch_larger_than_a_chunk_is_solved_chunk_by_chunk_with_the
         return jax.jit(lambda w0, g: jax.value_and_grad(cost, (0, 1), has_aux=True)(w0, g))(w0, jnp.asarray(0.3, DTYPE))
 
     (_, whole), whole_grads = run()
-    monkeypatch.setattr(simulation, "_ADAPTIVE_CHUNK", 3)
+    monkeypatch.setattr(numerical_solve, "_ADAPTIVE_CHUNK", 3)
     (_, chunked), chunked_grads = run()
     steps = np.asarray(whole[2])
     assert steps.min() >= 3 and len(set(steps.tolist())) > 1, steps  # bodies take different steps
@@ -757,7 +757,7 @@ def test_a_solve_with_a_progress_bar_takes_the_batch_whole(monkeypatch):
     """With ``progress=True`` the batch is not cut into chunks (one bar for the solve, not one a
     chunk); without it the adaptive path's chunks hold ``_ADAPTIVE_CHUNK`` bodies. A spy on
     ``_in_chunks`` records the chunk size and stops: nothing is solved or compiled."""
-    from jaxquat.integration import simulation
+    from jaxquat.integration import numerical_solve
 
     class Seen(Exception):
         pass
@@ -768,8 +768,8 @@ def test_a_solve_with_a_progress_bar_takes_the_batch_whole(monkeypatch):
         sizes.append(size)
         raise Seen
 
-    monkeypatch.setattr(simulation, "_in_chunks", spy)
-    monkeypatch.setattr(simulation, "_ADAPTIVE_CHUNK", 2)
+    monkeypatch.setattr(numerical_solve, "_in_chunks", spy)
+    monkeypatch.setattr(numerical_solve, "_ADAPTIVE_CHUNK", 2)
     q0, w0, inertia = jq.identity((5,), DTYPE), jnp.ones((5, 3), DTYPE), jnp.diag(jnp.asarray(I_DIAG, DTYPE))
     for progress in (False, True):
         with pytest.raises(Seen):
@@ -782,11 +782,11 @@ def test_a_concrete_diagonal_tensor_is_taken_as_diagonal_under_a_user_s_jit(monk
     batch (a tracer under ``jit``): the closed form then runs without diagonalising each body
     (``_to_principal``), and the scan path's step reads only the moments; a full tensor is still
     diagonalised. Traced only (``lower``): nothing is compiled."""
-    from jaxquat.integration import simulation, struct_of_arrays
+    from jaxquat.integration import principal_frame, struct_of_arrays
 
     seen = []
-    to_principal, euler = simulation._to_principal, struct_of_arrays.EulerEquations
-    monkeypatch.setattr(simulation, "_to_principal", lambda *a: seen.append("principal") or to_principal(*a))
+    to_principal, euler = principal_frame.to_principal, struct_of_arrays.EulerEquations
+    monkeypatch.setattr(principal_frame, "to_principal", lambda *a: seen.append("principal") or to_principal(*a))
     monkeypatch.setattr(
         struct_of_arrays,
         "EulerEquations",
@@ -1138,7 +1138,7 @@ def test_adaptive_simulate_compiles_no_concatenation_of_every_saved_time():
     concatenations do not grow with the number of saved times (with the stack: 4320 operands at
     2001 times, 50 without). The broadcast's values are the stack's."""
     assert _concatenated_operands(2001) == _concatenated_operands(101)
-    from jaxquat.integration.simulation import _StackOfCopiesAsBroadcast
+    from jaxquat.integration.numerical_solve import _StackOfCopiesAsBroadcast
 
     shim = _StackOfCopiesAsBroadcast(jnp)
     x = jnp.arange(6.0, dtype=DTYPE).reshape(2, 3)

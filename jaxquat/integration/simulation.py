@@ -2,64 +2,22 @@
 
 from __future__ import annotations
 
-import contextlib
-import dataclasses
-import functools
-import math
 from collections.abc import Callable
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
-import diffrax
-import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .. import _arrays, _checks, _quaternion, _rotation, _trig
+from .. import _arrays, _checks
 from ..mechanics.inertia import validated
-from . import fixed_step, struct_of_arrays
-from .fixed_step import solve_fixed_steps
-from .lie_solvers import RKMK45, AbstractLieSolver, AbstractRKMK, BodyRateTerm, LieEuler
-from ..mechanics.rigid_body import RigidBody
-from .splitting import AbstractSplitting, EulerPoinsotSplit
-from ..mechanics.inertia import principal_axes
 from ..mechanics.torque_free import propagate
-from ..mechanics.torques import as_body_torque
+from . import principal_frame
+
+if TYPE_CHECKING:
+    import diffrax
 
 __all__ = ["Simulation", "simulate"]
-
-# The default adjoint's checkpoints per body. Diffrax's own default is O(sqrt(2 max_steps)), 446
-# for max_steps=100_000, and each body of the adaptive path's vmap holds its own: their cost
-# comes per solve, whatever the number of steps taken. The gradient of 1000 bodies under the PD
-# torque for 10 s (55 steps at most in float32, 173 in float64; one core of a 2-core EPYC) took
-# 118 ms in float32 and 294 ms in float64 with 446, 57 ms and 232 ms with 64 (16: 58 / 280,
-# 32: 57 / 222, 128: 75 / 267, 256: 106 / 295); at 10^4 bodies 1657 ms (1.71 GB peak) and
-# 5171 ms (2.21 GB) with 446, 1073 ms (1.09 GB) and 4667 ms (1.18 GB) with 64. Up to
-# (64 + 1)(64 + 2)/2 = 2145 steps equinox's online checkpointing recomputes optimally (its bound,
-# after Stumm and Walther): 200 s of the PD law plus a sinusoid at 100 bodies, 1754 steps, took
-# 367 ms with 446, 375 ms with 64 and 611 ms with 32. Longer solves recompute more than with 446.
-_CHECKPOINTS = 64
-
-# The scan path's chunks on CPU: at most this many bytes per component array of a chunk of
-# bodies (20 000 bodies in float32, 10 000 in float64), solved one chunk after another
-# (_in_chunks). 10^5 torque-free bodies x 1000 RKMK4 steps, one core of this 2-core EPYC, median
-# of 3, the gradient (and its peak memory) whole -> in chunks: float32 4103 -> 3639 ms (3.16 ->
-# 1.00 GB), float64 11844 -> 6920 ms (5.95 -> 1.03 GB); the forward pass 561 -> 548 ms and
-# 1393 -> 1521 ms. Smaller chunks were faster on one core (float32, 2000 bodies: 3006 ms) but
-# slower on two, where XLA splits each loop of a step between the threads (the forward pass
-# 350 -> 700 ms; 20 000 bodies: 374 ms).
-_CHUNK_BYTES = 80_000
-
-# The adaptive path's chunks on CPU: at most this many bodies, whose vmapped solves run one chunk
-# after another, so that a chunk's arrays stay in cache. 10^4 bodies under the PD torque of
-# benchmarks/simulation.py for 10 s, one core of this 2-core EPYC, median of 3, whole -> in
-# chunks: float32 forward 79.4 -> 53.5 ms, gradient 723 -> 376 ms; float64 297 -> 217 ms and
-# 3373 -> 1703 ms. On two cores (float32, chunks made outside simulate, two runs each) the
-# gradient 529-583 -> 304-310 ms, with chunks of 2500 378-383 ms. At 1000 bodies smaller chunks
-# gained nothing (one core, float32: 36.0 ms whole, 37.4-38.4 ms in chunks of 100-500). Not
-# rematerialised: diffrax's checkpoints are small, and recomputing each chunk cost 12 % more.
-_ADAPTIVE_CHUNK = 1000
 
 
 class Simulation(NamedTuple):
@@ -114,7 +72,7 @@ def simulate(
     rotated back (its derivative needs distinct principal moments). ``adjoint`` defaults to diffrax's
     ``RecursiveCheckpointAdjoint`` with 64 checkpoints per body (diffrax's own default for
     ``max_steps=100_000``, 446, made reverse mode through a batch 1.3-2x slower, with up to 1.9x
-    the memory; see ``_CHECKPOINTS``); ``progress=True`` shows a tqdm bar.
+    the memory; see ``numerical_solve._CHECKPOINTS``); ``progress=True`` shows a tqdm bar.
 
     Torque-free with the default solver, no ``dt0``, ``adjoint`` or ``progress``: no
     ``diffeqsolve`` runs; every saved state is the closed-form flow
@@ -197,56 +155,32 @@ def simulate(
     ts = _check_times(ts, ts_host, dt0, solver)
     if progress:
         _checks.require_tqdm("simulate")
-    if solver is None:
-        solver = EulerPoinsotSplit() if torque is None else RKMK45()
-    adaptive = _has_error_estimate(solver)
-    if adaptive and isinstance(solver, AbstractLieSolver):
-        # every saved time is a step end (ClipStepSizeController(step_ts=ts), below): the saves are
-        # the steps' own ends, and diffrax traces no dense output (_StepEndInterpolation). 1000
-        # PD-controlled bodies over 10 s, float32, one core: forward 9.2 -> 6.3 ms, gradient 54.8 ->
-        # 41.6 ms (float64: 36 -> 23 ms, 228 -> 166 ms); time to the first gradient 14.1-14.4 ->
-        # 11.4 s (trace 6.4 -> 5.3 s, XLA 7.5 -> 6.0 s).
-        solver = dataclasses.replace(solver, saves_at_step_ends=True)
-    # Torque-free, the exact flow needs no step control: step straight from one saved time to the next.
-    exact = getattr(solver, "exact_torque_free", False) and torque is None and dt0 is None
-    if not (adaptive or exact) and dt0 is None:
-        raise ValueError(f"argument 'dt0' is required with the fixed-step solver {type(solver).__name__}")
-    principal = isinstance(solver, AbstractSplitting) and not diagonal_given
-    if max_steps is None:
-        # numpy, not jnp: inside jit even a concrete ts would be traced by ts[-1] - ts[0]
-        span = None if ts_host is None else abs(float(ts_host[-1] - ts_host[0]))
-        if exact:
-            max_steps = len(ts)
-        elif adaptive or span is None or dt0 is None:  # dt0 is not None here: checked above
-            max_steps = 100_000
-        else:
-            max_steps = math.ceil(span / abs(dt0)) + len(ts) + 16
-    if exact and adjoint is None and not progress:
-        tensor = inertia if shared_inertia is None else shared_inertia
-        return _arrays.compiled(_exact_simulate, q0, omega0, tensor, ts, principal=principal)
-    substeps = None if (adjoint is not None or progress) else _scan_substeps(solver, ts_host, dt0, max_steps)
-    adjoint = diffrax.RecursiveCheckpointAdjoint(checkpoints=_CHECKPOINTS) if adjoint is None else adjoint
-    diagonal = substeps is not None and diagonal_given
-    # a GPU takes the batch whole, and so does a solve with a progress bar (one bar, not one a chunk)
-    in_chunks = _trig.is_cpu() and not progress
-    chunks = (_CHUNK_BYTES // q0.dtype.itemsize, _ADAPTIVE_CHUNK) if in_chunks else (q0.size, q0.size)
-    config = _Config(
+    tensor = inertia if shared_inertia is None else shared_inertia
+    if solver is None and torque is None and dt0 is None and adjoint is None and not progress:
+        # The default torque-free path, the closed form (EulerPoinsotSplit's exact flow), decided
+        # here without importing diffrax and equinox (numerical_solve's docstring).
+        return _arrays.compiled(_exact_simulate, q0, omega0, tensor, ts, principal=not diagonal_given)
+    from . import numerical_solve  # diffrax and equinox, on the first numerical solve
+
+    cfg = numerical_solve.configure(
         solver,
         torque,
         torque_frame,
-        principal,
-        substeps,
-        diagonal,
-        exact,
+        dt0,
         rtol,
         atol,
         max_steps,
         adjoint,
         progress,
-        chunks,
+        ts_host,
+        len(ts),
+        q0,
+        diagonal_given,
     )
+    if cfg.exact and adjoint is None and not progress:
+        return _arrays.compiled(_exact_simulate, q0, omega0, tensor, ts, principal=cfg.principal)
     try:
-        return _solve(config, q0, omega0, inertia, shared_inertia, ts, args, dt0)
+        return Simulation(*numerical_solve.solve(cfg, q0, omega0, inertia, shared_inertia, ts, args, dt0))
     except TypeError as err:  # jvp of the compiled solve meets diffrax's custom_vjp adjoint
         if "custom_vjp" not in str(err):
             raise
@@ -254,252 +188,6 @@ def simulate(
             "forward-mode autodiff (jax.jvp, jax.jacfwd) through simulate's diffeqsolve path needs "
             "adjoint=diffrax.ForwardMode(); the default RecursiveCheckpointAdjoint supports reverse mode only"
         ) from err
-
-
-class _Config(NamedTuple):
-    """Everything :func:`simulate` decided before solving (static under ``eqx.filter_jit``)."""
-
-    solver: Any
-    torque: Callable | None
-    torque_frame: str
-    principal: bool
-    substeps: int | None
-    diagonal: bool  # a concrete diagonal tensor (the struct-of-arrays step reads its diagonal only)
-    exact: bool
-    rtol: float
-    atol: float
-    max_steps: int
-    adjoint: Any
-    progress: bool
-    chunks: tuple[int, int]  # the most bodies per chunk (_in_chunks): the scan path's, the adaptive path's
-
-
-@eqx.filter_jit
-def _solve(cfg: _Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> Simulation:
-    """The solve behind :func:`simulate`, compiled as one program: called eagerly, the solve
-    used to dispatch (and compile) every array operation around ``diffeqsolve`` or the scan on
-    its own (the suite's ``test_integrators.py``: 1092 compilations of single operations, 31 s;
-    repeated eager calls 0.1-0.8 s each, now microseconds after the first)."""
-    solver, torque, torque_frame, principal, substeps, diagonal, exact, rtol, atol, max_steps, adjoint, progress, _ = (
-        cfg
-    )
-    adaptive = _has_error_estimate(solver)
-    if exact:
-        controller = diffrax.StepTo(ts)
-    elif adaptive:
-        controller = diffrax.ClipStepSizeController(diffrax.PIDController(rtol=rtol, atol=atol), step_ts=ts)
-    else:
-        controller = diffrax.ConstantStepSize()
-    meter = diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter()
-    batch = q0.shape[:-1]
-    per_body_field = bool(batch) and not adaptive and not isinstance(solver, AbstractSplitting)
-
-    tableau = None if substeps is None else _component_tableau(solver)
-
-    def solve(q, w, inertia_1, torque_fn):
-        """One solve of a body, or of a whole batch stacked on the leading axis."""
-        if tableau is not None and substeps is not None:  # the Lie solvers' scan path, struct-of-arrays form
-            # a batch's torque law per body, vmapped over the last axis of the components stacked
-            # along the first (EulerEquations' columns); one body's on its rows
-            body_torque = None if torque is None else as_body_torque(torque, torque_frame)
-            if body_torque is not None and batch:
-                body_torque = jax.vmap(body_torque, in_axes=(None, -1, -1, None), out_axes=-1)
-            euler = struct_of_arrays.EulerEquations(inertia_1, body_torque, diagonal, columns=bool(batch))
-            qs, ws = struct_of_arrays.solve(tableau, euler, ts, q, w, args, substeps)
-            return qs, ws, None
-        if principal:  # the splittings work in principal axes: rotate there and back
-            moments, q_axes, r, q, w = _to_principal(inertia_1, q, w)
-            inertia_1 = moments[..., None] * jnp.broadcast_to(jnp.eye(3, dtype=moments.dtype), moments.shape + (3,))
-        if isinstance(solver, AbstractSplitting):  # the splittings read the RigidBody itself
-            term = diffrax.ODETerm(RigidBody(inertia_1, torque_fn, torque_frame))
-        else:  # on the scan path in the Lie-algebra form (the body rate on q: no conversion)
-            field = _Field(
-                inertia_1,
-                torque if per_body_field else torque_fn,
-                torque_frame,
-                per_body_field,
-                rates=substeps is not None,
-            )
-            term = (diffrax.ODETerm if substeps is None else BodyRateTerm)(field)
-        if substeps is not None:  # the fixed-step scan driver: the time axis first, as diffrax's
-            qs, ws = solve_fixed_steps(solver, term, ts, (q, w), args, substeps=substeps)
-            sol = None
-        else:
-            qs, ws, sol = _diffeqsolve(term, q, w)
-        if principal:  # diffrax puts the time axis first
-            qs, ws = _from_principal(qs, ws, q_axes[None], r[None])
-        return qs, ws, sol
-
-    def _diffeqsolve(term, q, w):
-        with _saves_by_broadcast():
-            return _diffeqsolve_traced(term, q, w)
-
-    def _diffeqsolve_traced(term, q, w):
-        sol = diffrax.diffeqsolve(
-            term,
-            solver,
-            ts[0],
-            ts[-1],
-            dt0,
-            (q, w),
-            args=args,
-            saveat=diffrax.SaveAt(ts=ts),
-            stepsize_controller=controller,
-            adjoint=adjoint,
-            max_steps=max_steps,
-            progress_meter=meter,
-        )
-        qs, ws = sol.ys  # type: ignore[misc]  # diffrax types ys as Optional; SaveAt(ts=...) fills it
-        return qs, ws, sol
-
-    if not batch:
-        return Simulation(*solve(q0, omega0, inertia, torque))
-    n = len(ts)
-    flat = [x.reshape((-1,) + x.shape[len(batch) :]) for x in (q0, omega0, inertia)]
-    if adaptive:  # each body its own step sizes
-        qs, ws, sol = _in_chunks(jax.vmap(lambda q, w, i: solve(q, w, i, torque)), cfg.chunks[1], *flat, remat=False)
-    else:  # fixed steps: one solve of the stacked batch (diffrax's per-step work is shared)
-        per_body = None if torque is None else jax.vmap(torque, in_axes=(None, 0, 0, None))
-        if shared_inertia is not None and per_body_field:  # one (3, 3) tensor, not carried per body
-            flat[2] = shared_inertia
-        if substeps is None:  # diffeqsolve
-            qs, ws, sol = solve(flat[0], flat[1], flat[2], per_body)
-            qs, ws = jnp.swapaxes(qs, 0, 1), jnp.swapaxes(ws, 0, 1)
-        else:  # the scan drivers
-
-            def batch_first(q, w, i):
-                qs, ws, _ = solve(q, w, i, per_body)
-                return jnp.swapaxes(qs, 0, 1), jnp.swapaxes(ws, 0, 1)
-
-            # A chunk whose steps run in segments (fixed_step.segment_length) is not rematerialised
-            # whole: its stored states are the segments' starts already, and a third forward pass
-            # cost more than it saved (10^5 float32 bodies x 1000 RKMK4 steps, one core: the gradient
-            # 3561 ms unsegmented, 4070 ms segmented and rematerialised, 3358 ms segmented alone).
-            state_bytes = 7 * _chunk_size(flat[0].shape[0], cfg.chunks[0]) * flat[0].dtype.itemsize  # q and w
-            remat = not fixed_step.segment_length(substeps, state_bytes)
-            qs, ws = _in_chunks(batch_first, cfg.chunks[0], *flat, remat=remat)
-            sol = None
-    return Simulation(qs.reshape(batch + (n, 4)), ws.reshape(batch + (n, 3)), sol)
-
-
-def _in_chunks(solve: Callable, size: int, q: Array, w: Array, inertia: Array, remat: bool) -> Any:
-    """``solve(q, w, inertia)`` of a stacked batch (``q`` ``(n, 4)``, ``w`` ``(n, 3)``, ``inertia``
-    ``(3, 3)`` shared or ``(n, 3, 3)``; a pytree of results with the batch axis first), solved
-    in chunks of at most ``size`` bodies when ``n`` is larger, one after another (``lax.map``),
-    so that the arrays of a step stay in cache. ``remat``: each chunk rematerialised whole in
-    reverse mode (``jax.checkpoint``), so that a gradient stores one chunk's states at a time,
-    not the whole batch's. The batch is padded to whole chunks with copies of its first body,
-    whose results are dropped.
-
-    Not ``lax.map(..., batch_size=size)``: it ``vmap``s a one-body function over each chunk (the
-    scan path's step is written for a stacked batch; a ``vmap`` of the one-body step took 240 ms
-    against its 67 ms, :mod:`jaxquat.integration.struct_of_arrays`), and solves the remainder as
-    a second program of another shape (a second compile)."""
-    n = q.shape[0]
-    if n <= size:
-        return solve(q, w, inertia)
-    size = _chunk_size(n, size)
-    count = -(-n // size)
-    per_body = inertia.ndim == 3
-    parts = [q, w, inertia] if per_body else [q, w]
-    pad = count * size - n
-    parts = [jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad,) + x.shape[1:])]) if pad else x for x in parts]
-    parts = [x.reshape((count, size) + x.shape[1:]) for x in parts]
-
-    def one(chunk):
-        return solve(chunk[0], chunk[1], chunk[2] if per_body else inertia)
-
-    if remat:
-        one = jax.checkpoint(one, prevent_cse=False)  # inside lax.map's scan, CSE cannot cross chunks
-    return jax.tree.map(lambda x: x.reshape((count * size,) + x.shape[2:])[:n], jax.lax.map(one, parts))
-
-
-def _chunk_size(n: int, size: int) -> int:
-    """Bodies per chunk of :func:`_in_chunks` for ``n`` bodies and chunks of at most ``size``: equal
-    chunks, as few as fit."""
-    return n if n <= size else -(-n // -(-n // size))
-
-
-class _StackOfCopiesAsBroadcast:
-    """``jax.numpy`` as diffrax's integrate module sees it, except that ``stack`` of a list
-    holding one array ``n`` times is a broadcast. Diffrax 0.6.1-0.7.0 fills ``SaveAt(ts=...)``
-    in its (never taken here) ``t0 == t1`` branch by ``jnp.stack([y] * len(ts))``: a
-    concatenation of ``len(ts)`` operands that XLA on CPU compiles into one enormous kernel
-    (diffrax issue 606, fixed upstream in 0.7.1, which this project cannot use: see
-    ``docs/integrators.md``). Measured (this 2-core EPYC, float64, RKMK45 at 1e-10, 6001 saved
-    times, ``simulate`` called eagerly): the first call 21.6 s, of it 21.4 s compiling, two
-    kernels of 3.5 MB of LLVM IR each; 1.7 s with the broadcast, the same values to the bit."""
-
-    def __init__(self, module):
-        self._module = module
-
-    def __getattr__(self, name):
-        return getattr(self._module, name)
-
-    def stack(self, arrays, axis=0, *rest, **kwargs):
-        arrays = list(arrays)
-        if axis == 0 and not rest and not kwargs and len(arrays) > 1 and all(a is arrays[0] for a in arrays):
-            first = jnp.asarray(arrays[0])
-            return jnp.broadcast_to(first[None], (len(arrays),) + first.shape)
-        return self._module.stack(arrays, axis, *rest, **kwargs)
-
-
-@contextlib.contextmanager
-def _saves_by_broadcast():
-    """While ``diffeqsolve`` is traced inside :func:`simulate` (at trace time only; nothing of
-    diffrax changes outside it), its integrate module's ``jnp`` is
-    :class:`_StackOfCopiesAsBroadcast`."""
-    import diffrax._integrate as integrate  # private: where the saving code lives (0.6-0.7)
-
-    original = getattr(integrate, "jnp", None)
-    if original is None or isinstance(original, _StackOfCopiesAsBroadcast):
-        yield  # another layout (a later diffrax), or already in place (a trace in another thread)
-        return
-    setattr(integrate, "jnp", _StackOfCopiesAsBroadcast(original))  # noqa: B010 (a private name: no typed attribute)
-    try:
-        yield
-    finally:
-        setattr(integrate, "jnp", original)  # noqa: B010
-
-
-class _Field(eqx.Module):
-    """The rigid body's vector field, ``(qdot, wdot)``, or ``(w, wdot)`` with ``rates`` (for
-    :class:`jaxquat.BodyRateTerm`). ``stacked``: of stacked bodies ``(q (n, 4), w (n, 3))``,
-    one body's field vmapped, with a shared ``(3, 3)`` tensor or one per body ``(n, 3, 3)``.
-    A module, so the inertia is a leaf every diffrax adjoint differentiates."""
-
-    inertia: Array
-    torque: Callable | None
-    torque_frame: str = eqx.field(static=True)
-    stacked: bool = eqx.field(static=True)
-    rates: bool = eqx.field(static=True)
-
-    def _one(self, t, q, w, tensor, args, rates: bool):
-        body = RigidBody(tensor, self.torque, self.torque_frame)
-        return (w, body.angular_acceleration(t, q, w, args)) if rates else body(t, (q, w), args)
-
-    def _field(self, t, y, args, rates: bool):
-        q, w = y
-        if not self.stacked:
-            return self._one(t, q, w, self.inertia, args, rates)
-        axis = None if self.inertia.ndim == 2 else 0
-        return jax.vmap(functools.partial(self._one, rates=rates), in_axes=(None, 0, 0, axis, None))(
-            t, q, w, self.inertia, args
-        )
-
-    def __call__(self, t, y, args):
-        return self._field(t, y, args, self.rates)
-
-    def body_rate_field(self, t, y, args):
-        """``(w_b, dw_b/dt)``, as :meth:`jaxquat.RigidBody.body_rate_field`."""
-        return self._field(t, y, args, True)
-
-    def euler_equations(self):
-        """``(inertia, body torque on the state's rows)``, as :meth:`jaxquat.RigidBody.euler_equations`."""
-        if self.torque is None:
-            return self.inertia, None
-        torque = as_body_torque(self.torque, self.torque_frame)
-        return self.inertia, jax.vmap(torque, in_axes=(None, 0, 0, None)) if self.stacked else torque
 
 
 def _exact_simulate(q0, omega0, inertia, ts, principal: bool) -> Simulation:
@@ -516,39 +204,22 @@ def _exact_simulate(q0, omega0, inertia, ts, principal: bool) -> Simulation:
     as one program (an eager first call at 11 saved times took 6.0 s as single operations, 3.0 s
     compiled; a repeated call 0.77 s and 5 ms)."""
     if principal:  # rotate to principal axes and back
-        moments, q_axes, r, q0, omega0 = _to_principal(inertia, q0, omega0)
+        moments, q_axes, r, q0, omega0 = principal_frame.to_principal(inertia, q0, omega0)
     else:
         moments = jnp.diagonal(inertia, axis1=-2, axis2=-1)
     bodies = jnp.broadcast_shapes(q0.shape[:-1], omega0.shape[:-1], moments.shape[:-1])
     q0, omega0, moments = (jnp.broadcast_to(x, bodies + x.shape[-1:]) for x in (q0, omega0, moments))
     qs, ws = propagate(q0, omega0, moments, jnp.broadcast_to(ts - ts[0], bodies + ts.shape))
     if principal:  # the time axis is last among the batch axes here
-        qs, ws = _from_principal(qs, ws, q_axes[..., None, :], r[..., None, :, :])
+        qs, ws = principal_frame.from_principal(qs, ws, q_axes[..., None, :], r[..., None, :, :])
     return Simulation(qs, ws, None)
-
-
-def _to_principal(inertia, q, w):
-    """Diagonalise ``inertia`` (``I = A diag(moments) A^T``, ``A`` of ``q_axes``) and express the
-    state in principal axes: ``(moments, q_axes, A, q q_axes, A^T w)``."""
-    moments, q_axes = principal_axes(inertia)
-    q_axes = jnp.broadcast_to(q_axes, q.shape[:-1] + (4,))
-    r = _rotation.to_matrix(q_axes)
-    return moments, q_axes, r, _quaternion.multiply(q, q_axes), _arrays.matvec(jnp.swapaxes(r, -1, -2), w)
-
-
-def _from_principal(qs, ws, q_axes, r):
-    """Back from principal axes: ``(q q_axes*, A w)``, ``q_axes`` and ``A`` broadcast onto the states."""
-    q_axes = jnp.broadcast_to(q_axes, qs.shape)
-    return _quaternion.multiply(qs, _quaternion.conjugate(q_axes)), _arrays.matvec(
-        jnp.broadcast_to(r, ws.shape + (3,)), ws
-    )
 
 
 def _check_times(ts, ts_host, dt0, solver):
     """``ts`` finite and strictly increasing, ``dt0`` finite and positive, ``solver`` a diffrax
     solver: ``ValueError``/``TypeError`` naming the argument where the values are known (an
     eager call or a concrete ``ts``); a traced ``ts`` is checked at run time (``eqx.error_if``)."""
-    if solver is not None and not isinstance(solver, diffrax.AbstractSolver):
+    if solver is not None and not isinstance(solver, _diffrax().AbstractSolver):
         raise TypeError(f"argument 'solver' must be a diffrax solver instance (e.g. jaxquat.RKMK4()), got {solver!r}")
     if dt0 is not None and not _checks.is_traced(dt0):
         value = np.asarray(dt0)
@@ -559,7 +230,16 @@ def _check_times(ts, ts_host, dt0, solver):
         if not np.all(np.isfinite(ts_host)) or not np.all(np.diff(ts_host) > 0):
             raise ValueError(f"{message}, got {ts_host}")
         return ts
+    import equinox as eqx  # a traced ts: checked at run time
+
     return eqx.error_if(ts, ~(jnp.all(jnp.isfinite(ts)) & jnp.all(ts[1:] > ts[:-1])), message)
+
+
+def _diffrax():
+    """diffrax, imported where a solver was given (and so already imported by the caller)."""
+    import diffrax
+
+    return diffrax
 
 
 def _is_concrete_diagonal(inertia) -> bool:
@@ -567,36 +247,3 @@ def _is_concrete_diagonal(inertia) -> bool:
     if _checks.is_traced(inertia):
         return False
     return not np.any(np.asarray(inertia) * (1 - np.eye(3)) != 0)
-
-
-def _component_tableau(solver) -> struct_of_arrays.Tableau | None:
-    """The tableau of a fixed-step Lie solver that the struct-of-arrays step runs exactly
-    (``LieEuler``, and ``AbstractRKMK`` subclasses with an explicit tableau that is not
-    first-same-as-last and their own ``lie_step``), or None (the solver's own step runs)."""
-    if type(solver) is LieEuler:
-        return struct_of_arrays.LIE_EULER
-    if (
-        isinstance(solver, AbstractRKMK)
-        and not _has_error_estimate(solver)
-        and not solver.tableau.fsal
-        and type(solver).lie_step is AbstractRKMK.lie_step
-    ):
-        order = solver.order(None)
-        return None if order is None else struct_of_arrays.Tableau.of(solver.tableau, order)
-    return None
-
-
-def _has_error_estimate(solver) -> bool:
-    """Whether a solver returns an error estimate (so a PID controller can adapt its step)."""
-    return isinstance(solver, diffrax.AbstractAdaptiveSolver)
-
-
-def _scan_substeps(solver, ts_host, dt0, max_steps) -> int | None:
-    """Steps per interval of ``ts`` (its values ``ts_host``, None if traced) for the scan path,
-    or None where diffrax must run (adaptive solvers, solvers from outside jaxquat)."""
-    fixed = isinstance(solver, (AbstractLieSolver, AbstractSplitting)) and not _has_error_estimate(solver)
-    if not fixed or dt0 is None or ts_host is None or _checks.is_traced(dt0):
-        return None
-    widest = float(np.max(np.abs(np.diff(ts_host))))
-    substeps = max(1, math.ceil(widest / abs(float(dt0)) * (1 - 1e-12)))
-    return None if max_steps is not None and substeps * (len(ts_host) - 1) > max_steps else substeps
