@@ -243,13 +243,18 @@ def _motion(q0: Array, w0: list[Array], moments: list[Array], a: Array, b: Array
     # integrals. One Carlson evaluation gives F and Pi at it and the complete integrals (K and
     # Pi(-nu | m)); the complete ones are used for every time at which the amplitude has turned.
     h0, s0, c0 = reduced_amplitude(sn0, cn0)
-    scalars = [m, mc, lam, amp_a, r_cb, g, sigma, s, wb_hat, abs_wa, dn0, wc, sn0, cn0, ell, nu, kb, kc, ia, ic]
-    scalars += [_chi(_trig.atan2(sn0, cn0), sn0, cn0, kb, kc), h0, s0, c0, partial_y(c0, m, mc)]
-    vectors = [e, moments, ea, eb, ec, left]
-    out = iter(_fusion.one_loop_both_ways(jnp.broadcast_arrays(*scalars, *(x for v in vectors for x in v))))
-    scalars = [next(out) for _ in scalars]
-    vectors = [tuple(next(out) for _ in v) for v in vectors]
-    m, mc, nu, h0, s0, c0, y0 = scalars[0], scalars[1], scalars[15], *scalars[-4:]
+    chi0 = _chi(_trig.atan2(sn0, cn0), sn0, cn0, kb, kc)
+    scalars = dict(m=m, mc=mc, lam=lam, amp_a=amp_a, r_cb=r_cb, g=g, sigma=sigma, s=s, wb_hat=wb_hat, abs_wa=abs_wa)
+    scalars.update(dn0=dn0, wc=wc, sn0=sn0, cn0=cn0, ell=ell, nu=nu, kb=kb, kc=kc, ia=ia, ic=ic, chi0=chi0)
+    scalars.update(h0=h0, s0=s0, c0=c0, y0=partial_y(c0, m, mc))
+    vectors = dict(e=e, moments=moments, ea=ea, eb=eb, ec=ec, left=left)
+    out = iter(
+        _fusion.one_loop_both_ways(jnp.broadcast_arrays(*scalars.values(), *(x for v in vectors.values() for x in v)))
+    )
+    fields: dict[str, Any] = {name: next(out) for name in scalars}
+    fields.update({name: tuple(next(out) for _ in v) for name, v in vectors.items()})
+    m, mc, nu = fields["m"], fields["mc"], fields["nu"]
+    h0, s0, c0, y0 = (fields.pop(name) for name in ("h0", "s0", "c0", "y0"))  # used here only
     f, pi = legendre(
         jnp.stack([s0, jnp.ones_like(s0)]),
         jnp.stack([c0 * c0, jnp.broadcast_to(tiny(c0), c0.shape)]),
@@ -261,10 +266,7 @@ def _motion(q0: Array, w0: list[Array], moments: list[Array], a: Array, b: Array
     agm_of_m = jax.lax.stop_gradient(agm(m, mc))
     u0 = jax.lax.stop_gradient(h0 * jnp.pi / agm_of_m[1] + f[0])
     pi_full, pi0, u0 = _fusion.one_loop_both_ways((pi[1], 2 * h0 * pi[1] + pi[0], u0))
-    names = ("m", "mc", "lam", "amp_a", "r_cb", "g", "sigma", "s", "wb_hat", "abs_wa", "dn0", "wc", "sn0", "cn0")
-    names += ("ell", "nu", "kb", "kc", "ia", "ic", "chi0")
-    fields: dict[str, Any] = dict(zip(names, scalars), pi_full=pi_full, pi0=pi0, rd_complete=complete_rd(mc), u0=u0)
-    fields.update(zip(("e", "moments", "ea", "eb", "ec", "left"), vectors))
+    fields.update(pi_full=pi_full, pi0=pi0, rd_complete=complete_rd(mc), u0=u0)
     return _Motion(**fields, agm=agm_of_m)
 
 
