@@ -219,8 +219,13 @@ def _check_times(ts, ts_host, dt0, solver):
     """``ts`` finite and strictly increasing, ``dt0`` finite and positive, ``solver`` a diffrax
     solver: ``ValueError``/``TypeError`` naming the argument where the values are known (an
     eager call or a concrete ``ts``); a traced ``ts`` is checked at run time (``eqx.error_if``)."""
-    if solver is not None and not isinstance(solver, _diffrax().AbstractSolver):
-        raise TypeError(f"argument 'solver' must be a diffrax solver instance (e.g. jaxquat.RKMK4()), got {solver!r}")
+    if solver is not None:
+        import diffrax  # a solver was given: its caller has imported diffrax already
+
+        if not isinstance(solver, diffrax.AbstractSolver):
+            raise TypeError(
+                f"argument 'solver' must be a diffrax solver instance (e.g. jaxquat.RKMK4()), got {solver!r}"
+            )
     if dt0 is not None and not _checks.is_traced(dt0):
         value = np.asarray(dt0)
         if value.shape != () or not np.isfinite(value) or value <= 0:
@@ -233,13 +238,6 @@ def _check_times(ts, ts_host, dt0, solver):
     import equinox as eqx  # a traced ts: checked at run time
 
     return eqx.error_if(ts, ~(jnp.all(jnp.isfinite(ts)) & jnp.all(ts[1:] > ts[:-1])), message)
-
-
-def _diffrax():
-    """diffrax, imported where a solver was given (and so already imported by the caller)."""
-    import diffrax
-
-    return diffrax
 
 
 def _is_concrete_diagonal(inertia) -> bool:
