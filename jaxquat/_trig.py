@@ -12,9 +12,11 @@ Method (textbook facts, the coefficients are the classical minimax ones of Cody 
 Waite / Moshier, re-derived constants checked against numpy in the tests):
 
 - ``sincos``: Cody-Waite reduction ``r = x - k pi/2`` with ``pi/2`` split in three
-  parts whose products with ``k`` are exact for ``|k| < 2**20`` (``|x| < 1.6e6``; past
-  that the result loses accuracy gradually, as any reduction without Payne-Hanek
-  does), then odd and even polynomials on ``|r| <= pi/4`` and a quadrant swap.
+  parts, the first two of whose products with ``k`` are exact for ``|k| < 2**21`` in
+  float64 (``|x| < 3.2e6``) and ``|k| < 2**16`` in float32 (``|x| < 1.0e5``), with or
+  without fused multiply-adds (past that the result loses accuracy gradually, as any
+  reduction without Payne-Hanek does), then odd and even polynomials on ``|r| <= pi/4``
+  and a quadrant swap.
 - ``atan2``: ``a = min(|x|, |y|) / max(|x|, |y|)`` in ``[0, 1]``, reduced once more by
   ``atan(a) = pi/4 + atan((a - 1)/(a + 1))`` above ``tan(pi/8)`` (float32) or 0.66
   (float64), a polynomial (float32) or rational (float64) kernel, then the octant
@@ -72,9 +74,14 @@ _COS = (
 )
 _SIN32 = (-1.6666654611e-1, 8.3321608736e-3, -1.9515295891e-4)
 _COS32 = (4.166664568298827e-2, -1.388731625493765e-3, 2.443315711809948e-5)
-# pi/2 = P1 + P2 + P3, each with few enough significant bits that k * Pi is exact.
+# pi/2 = P1 + P2 + P3: P1 and P2 with few enough significant bits that k * P1 and k * P2 are
+# exact (float64: 31 and 32 bits, |k| < 2^21; float32: 8 and 7 bits, |k| < 2^16), P3 the rest
+# to the dtype's precision. Until session 58 the float32 P2 had 11 bits, so k * P2 rounded
+# for |k| > 2^13 (|x| > 1.3e4) unless the multiply and subtract were contracted into a fused
+# multiply-add: sin and cos at |x| <= 1e5 were 8.0 ulp off on a CPU without FMA (XLA limited
+# to AVX), against 0.75 with it; now 0.7-0.8 ulp both ways.
 _PIO2_64 = (1.57079632673412561417e00, 6.07710050630396597660e-11, 2.02226624871116645580e-21)
-_PIO2_32 = (1.5703125, 4.837512969970703125e-4, 7.54978995489188216e-8)
+_PIO2_32 = (1.5703125, 4.84466552734375e-4, -6.397578431460715e-7)
 
 # atan(t) = t + t^3 P(t^2) / Q(t^2) on |t| <= 0.66 (float64); t + t^3 R(t^2) on |t| <= tan(pi/8) (float32).
 _ATAN_P = (
@@ -142,9 +149,20 @@ def reciprocal(y: Array) -> Array:
     """``1 / y`` from multiplies only: a bit-pattern guess, then Newton's ``r + r (1 - |y| r)``
     (the residual first, so a power of two comes out exact, where ``r (2 - |y| r)`` stalls an ulp
     short). Within 0.5 ulp of ``1 / y`` for ``2^-126 <= |y| < 2^125`` (float32; ``2^-1022`` and
-    ``2^1021`` in float64; ``tests/test_trig.py``); beyond (where the guess's exponent leaves the
-    normal range) and at zero, a finite but wrong number; NaN gives NaN. float16 and bfloat16 go through
-    float32."""
+    ``2^1021`` in float64; ``tests/test_trig.py``) where XLA fuses the residual's multiply and
+    subtract into one fused multiply-add (FMA: CPUs that have it, x86-64 since 2013 and every ARM64
+    one, and GPUs), within 1.25 ulp where it rounds the product first (measured 1.24 ulp in both
+    dtypes, XLA limited to AVX: ``--xla_cpu_max_isa=AVX``); beyond that range (where the guess's
+    exponent leaves the normal range) and at zero, a finite but wrong number; NaN gives NaN.
+    float16 and bfloat16 go through float32.
+
+    Without FMA the bound holds for ``|y| < 2^100`` (float32; ``2^970`` in float64, the suite checks
+    below ``2^64`` and ``2^512``): above, ``1 / y`` is near the bottom of the normal range and a
+    correction ``r (1 - |y| r)`` subnormal, which XLA's CPU code flushes to zero (measured: up to 5 %
+    off at ``2^124``, 4 % at ``2^1020``). Scaling ``|y|`` down there by a power of two and the result
+    back (a compare, a select and two multiplies) removed that, but cost 7 % of ``to_rotvec``'s
+    gradient at 10^6 rotations (float32, 10.05-10.95 -> 10.96-11.54 ms, one core) for arguments
+    no rotation reaches, so it is not done."""
     if jnp.finfo(y.dtype).bits < 32:  # float16, bfloat16: in float32
         return reciprocal(y.astype(jnp.float32)).astype(y.dtype)
     a = jnp.abs(y)
@@ -165,7 +183,8 @@ def _reciprocal_jvp(primals, tangents):
 @jax.custom_jvp
 def rsqrt(x: Array) -> Array:
     """``1 / sqrt(x)`` from multiplies only: a bit-pattern guess, then Newton's
-    ``r + r (1 - x r^2) / 2``. Within 1 ulp for normal ``x > 0`` (``tests/test_trig.py``); at
+    ``r + r (1 - x r^2) / 2``. Within 1 ulp for normal ``x > 0`` (``tests/test_trig.py``; 1.25
+    ulp without fused multiply-adds, measured 1.21: see :func:`reciprocal`); at
     zero a large finite number (so ``x * rsqrt(x)`` is 0); NaN gives NaN. float16 and bfloat16
     go through float32."""
     if jnp.finfo(x.dtype).bits < 32:  # float16, bfloat16: in float32
