@@ -24,6 +24,22 @@ BATCH = 16
 seeds = st.integers(min_value=0, max_value=2**31 - 1)
 
 
+def xla_fuses_multiply_add() -> bool:
+    """Whether XLA's compiled code rounds ``a * b - c`` once (a fused multiply-add: on a CPU with
+    FMA, x86-64 since 2013 and every ARM64 one, and on GPUs) or twice: ``a = 1 + 2^-12`` (float32;
+    ``2^-27`` in float64), ``c = 1 + 2^-11`` (``2^-26``): ``a a - c`` is the last half ulp of
+    ``a a``, which rounding the product first loses. A few of ``jaxquat._trig``'s bounds hold
+    only with one rounding (``tests/test_trig.py``)."""
+    h = 2.0 ** (-27 if X64 else -12)
+    a, c = jnp.asarray(1.0 + h, DTYPE), jnp.asarray(1.0 + 2 * h, DTYPE)
+    return float(_multiply_subtract(a, c)) != 0.0
+
+
+@jax.jit
+def _multiply_subtract(a, c):
+    return a * a - c
+
+
 def singular_quats(dtype=np.float64) -> np.ndarray:
     """The points where naive formulas break: identity, tiny angles, 180 degrees, sign flips."""
     s = np.sqrt(0.5)
