@@ -217,9 +217,9 @@ def test_trig_bounds_without_fused_multiply_add():
     to AVX (``--xla_cpu_max_isa=AVX``, a fresh interpreter), arguments from the bottom of the normal
     range to ``2^64`` (float32; ``2^512`` in float64: the reciprocal's range without FMA):
     ``reciprocal`` within 1.5 ulp (measured 1.24), ``rsqrt`` 2 (1.21), the kernel-mode square root
-    3 (1.76), ``sin`` and ``cos`` on
-    ``|x| <= 1e5`` 2 (0.76 in float32, where the range reduction's second product rounded
-    before session 58: 8.0 ulp). The probe of ``helpers.xla_fuses_multiply_add`` must say no."""
+    3 (1.76), ``sin`` and ``cos`` on ``|x| <= 1e5`` 2 (0.76 in float32, where the range reduction's
+    second product rounded before session 58: 8.0 ulp). The probe of
+    ``helpers.xla_fuses_multiply_add`` must say no."""
     env = dict(os.environ, XLA_FLAGS=(os.environ.get("XLA_FLAGS", "") + " --xla_cpu_max_isa=AVX").strip())
     env["JAX_ENABLE_X64"] = "1"
     env["PYTHONPATH"] = os.pathsep.join([str(pathlib.Path(__file__).parent), env.get("PYTHONPATH", "")])
