@@ -16,7 +16,10 @@ states, against 2.1e-7 with either flag alone), so it is not used. Session 41 fo
 depends on the cores: ``simulate``'s closed form at 10^4 saved times, float32, level 0, 1.5e-5
 in 671 states on one core (``taskset``, as a pinned test worker runs) and 3.3e-7 on two, 2.7e-7
 at XLA's level on either; a verdict that moves with the core count rules the level out (the
-float32 pass at level 0: 156 s against 202-215 s, with that test failing).
+float32 pass at level 0: 156 s against 202-215 s, with that test failing). Session 58: that test
+passes at level 0 now, the float64 pass took 9m08 against 11m31, but five others failed, from what
+level 0 leaves out (multiply-add contraction, the folding of additions of ``-0.0``): still not used
+(``docs/benchmarks.md``).
 ``--xla_cpu_opt_preset=FAST_COMPILE`` (session 41) compiled the closed form's gradient in 3.6-4.3 s
 against 5.4-5.9 s but the whole float32 pass slower (268 s, 370 s of XLA against 243-257 s). The flag also hides
 what a user meets under the defaults: the scan path's step with a torque compiled there to
