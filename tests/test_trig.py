@@ -28,10 +28,10 @@ _sincos = jax.jit(_trig.sincos)
 _atan2 = jax.jit(_trig.atan2)
 
 
-def _ulps(got, want):
+def _ulps(got, want, eps=EPS):
     """Error in units of eps times max(1, |want|) (absolute near zero, relative elsewhere)."""
     got = np.asarray(got, np.float64)
-    return np.max(np.abs(got - want) / np.maximum(np.abs(want), 1.0)) / EPS
+    return np.max(np.abs(got - want) / np.maximum(np.abs(want), 1.0)) / eps
 
 
 @pytest.mark.parametrize("scale", [1.0, 10.0, 1e3, 1e5])
@@ -151,11 +151,11 @@ def test_the_polynomials_and_barriers_are_for_cpu_only(cpu, monkeypatch):
     np.testing.assert_allclose(np.asarray(qq), want_q, atol=tol)
 
 
-def _ulp_error(got, want):
-    """Error in units in the last place of ``want`` (in the dtype), ``want`` exact in float64 or
+def _ulp_error(got, want, dtype=NP_DTYPE):
+    """Error in units in the last place of ``want`` (in ``dtype``), ``want`` exact in float64 or
     long double."""
     got = np.asarray(got).astype(np.longdouble)
-    return np.max(np.abs(got - want) / np.spacing(np.abs(want).astype(NP_DTYPE)).astype(np.longdouble))
+    return np.max(np.abs(got - want) / np.spacing(np.abs(want).astype(dtype)).astype(np.longdouble))
 
 
 def test_reciprocal_rsqrt_and_kernel_sqrt_accuracy():
@@ -187,25 +187,23 @@ _WITHOUT_FMA = """
 import json, numpy as np, jax, jax.numpy as jnp
 from jaxquat import _trig
 from helpers import xla_fuses_multiply_add
+from test_trig import _ulp_error, _ulps
 out = {"fused": xla_fuses_multiply_add()}
 for dt in (np.float32, np.float64):
     info, n = np.finfo(dt), 200_000
     rng = np.random.default_rng(4)
     x = (rng.uniform(1.0, 2.0, n) * 2.0 ** rng.uniform(np.log2(info.tiny) + 1, info.maxexp // 2, n)).astype(dt)
     exact = x.astype(np.longdouble)
-    def ulp(got, want):
-        got = np.asarray(got).astype(np.longdouble)
-        return float(np.max(np.abs(got - want) / np.spacing(np.abs(want).astype(dt)).astype(np.longdouble)))
     with _trig.kernel_mode():
         root = jax.jit(_trig.sqrt)(jnp.asarray(x))
     a = np.random.default_rng(0).uniform(-1e5, 1e5, n).astype(dt)
     s, c = jax.jit(_trig.sincos)(jnp.asarray(a))
     a64 = a.astype(np.float64)
-    pairs = ((s, np.sin(a64)), (c, np.cos(a64)))
-    angle = max(np.max(np.abs(np.asarray(v, np.float64) - w) / np.maximum(np.abs(w), 1.0)) for v, w in pairs)
-    out[info.dtype.name] = dict(reciprocal=ulp(jax.jit(_trig.reciprocal)(jnp.asarray(x)), 1 / exact),
-        rsqrt=ulp(jax.jit(_trig.rsqrt)(jnp.asarray(x)), 1 / np.sqrt(exact)), sqrt=ulp(root, np.sqrt(exact)),
-        sincos=float(angle / info.eps))
+    out[info.dtype.name] = {name: float(err) for name, err in dict(
+        reciprocal=_ulp_error(jax.jit(_trig.reciprocal)(jnp.asarray(x)), 1 / exact, dt),
+        rsqrt=_ulp_error(jax.jit(_trig.rsqrt)(jnp.asarray(x)), 1 / np.sqrt(exact), dt),
+        sqrt=_ulp_error(root, np.sqrt(exact), dt),
+        sincos=max(_ulps(s, np.sin(a64), info.eps), _ulps(c, np.cos(a64), info.eps))).items()}
 print(json.dumps(out))
 """
 
