@@ -166,44 +166,46 @@ def test_reciprocal_rsqrt_and_kernel_sqrt_accuracy():
     1.25 ulp below ``2^64`` (float32; ``2^512`` in float64; measured 1.24 in both dtypes, rsqrt
     1.21 and the square root 1.76, XLA limited to AVX): bound 1.5 there, on that range
     (``test_trig_bounds_without_fused_multiply_add`` runs that case on every x86-64 machine)."""
-    info = np.finfo(NP_DTYPE)
     fused = xla_fuses_multiply_add()
-    top = info.maxexp - 4 if fused else info.maxexp // 2  # 2^125, 2^1021 with FMA; else 2^64, 2^512
+    errors = _newton_errors(NP_DTYPE, fused)
+    assert errors["reciprocal"] <= (1.0 if fused else 1.5)
+    assert errors["rsqrt"] <= 2.0
+    assert errors["sqrt"] <= 3.0
+    assert not _trig.in_kernel()
+
+
+def _newton_errors(dtype, fused: bool) -> dict:
+    """The ulp errors of ``reciprocal`` (both signs), ``rsqrt`` and the kernel-mode ``sqrt`` in
+    ``dtype`` on ``N`` arguments from the bottom of the normal range to ``2^125`` (float64:
+    ``2^1021``) where XLA fuses multiply-adds, to ``2^64`` (``2^512``) where it does not."""
+    info = np.finfo(dtype)
+    top = info.maxexp - 4 if fused else info.maxexp // 2
     rng = np.random.default_rng(4)
     e = rng.uniform(np.log2(info.tiny) + 1, top, N)  # 2^-126 < x (float64: 2^-1022)
-    x = (rng.uniform(1.0, 2.0, N) * 2.0**e).astype(NP_DTYPE)
-    exact = x.astype(np.longdouble)
-    bound = 1.0 if fused else 1.5
-    assert _ulp_error(jax.jit(_trig.reciprocal)(jnp.asarray(x)), 1 / exact) <= bound
-    assert _ulp_error(jax.jit(_trig.reciprocal)(jnp.asarray(-x)), -1 / exact) <= bound
-    assert _ulp_error(jax.jit(_trig.rsqrt)(jnp.asarray(x)), 1 / np.sqrt(exact)) <= 2.0
+    x = jnp.asarray((rng.uniform(1.0, 2.0, N) * 2.0**e).astype(dtype))
+    exact = np.asarray(x).astype(np.longdouble)
+    reciprocal = jax.jit(_trig.reciprocal)
     with _trig.kernel_mode():
-        kernel_sqrt = jax.jit(lambda x: _trig.sqrt(x))
-        assert _ulp_error(kernel_sqrt(jnp.asarray(x)), np.sqrt(exact)) <= 3.0
-    assert not _trig.in_kernel()
+        root = jax.jit(lambda x: _trig.sqrt(x))(x)  # a fresh function: traced in kernel mode
+    return dict(
+        reciprocal=max(_ulp_error(reciprocal(x), 1 / exact, dtype), _ulp_error(reciprocal(-x), -1 / exact, dtype)),
+        rsqrt=_ulp_error(jax.jit(_trig.rsqrt)(x), 1 / np.sqrt(exact), dtype),
+        sqrt=_ulp_error(root, np.sqrt(exact), dtype),
+    )
 
 
 _WITHOUT_FMA = """
 import json, numpy as np, jax, jax.numpy as jnp
 from jaxquat import _trig
 from helpers import xla_fuses_multiply_add
-from test_trig import _ulp_error, _ulps
+from test_trig import N, _newton_errors, _ulps
 out = {"fused": xla_fuses_multiply_add()}
 for dt in (np.float32, np.float64):
-    info, n = np.finfo(dt), 200_000
-    rng = np.random.default_rng(4)
-    x = (rng.uniform(1.0, 2.0, n) * 2.0 ** rng.uniform(np.log2(info.tiny) + 1, info.maxexp // 2, n)).astype(dt)
-    exact = x.astype(np.longdouble)
-    with _trig.kernel_mode():
-        root = jax.jit(_trig.sqrt)(jnp.asarray(x))
-    a = np.random.default_rng(0).uniform(-1e5, 1e5, n).astype(dt)
+    a = np.random.default_rng(0).uniform(-1e5, 1e5, N).astype(dt)
     s, c = jax.jit(_trig.sincos)(jnp.asarray(a))
-    a64 = a.astype(np.float64)
-    out[info.dtype.name] = {name: float(err) for name, err in dict(
-        reciprocal=_ulp_error(jax.jit(_trig.reciprocal)(jnp.asarray(x)), 1 / exact, dt),
-        rsqrt=_ulp_error(jax.jit(_trig.rsqrt)(jnp.asarray(x)), 1 / np.sqrt(exact), dt),
-        sqrt=_ulp_error(root, np.sqrt(exact), dt),
-        sincos=max(_ulps(s, np.sin(a64), info.eps), _ulps(c, np.cos(a64), info.eps))).items()}
+    a64, eps = a.astype(np.float64), np.finfo(dt).eps
+    errors = dict(_newton_errors(dt, False), sincos=max(_ulps(s, np.sin(a64), eps), _ulps(c, np.cos(a64), eps)))
+    out[np.dtype(dt).name] = {name: float(err) for name, err in errors.items()}
 print(json.dumps(out))
 """
 
