@@ -550,7 +550,8 @@ def _solver_compiler_options() -> dict[str, Any] | None:
     """The XLA options of the solvers' programs (:func:`solver_jit`, and the diagnosis of
     :func:`redundant_final`; for these ``jit`` calls only), on the CPU: XLA's older elemental
     emitters (``xla_cpu_use_fusion_emitters`` off) where the installed XLA knows the option, and
-    its while-loop-invariant code motion pass off; None where neither applies.
+    its while-loop-invariant code motion pass off, and LLVM at optimisation level 1 (XLA's
+    default 2); None where none applies.
 
     The solver is a large program run once per call, so its compile time is what a first call
     waits for. Measured (float64, one start, this 2-core EPYC, ``OPENBLAS_NUM_THREADS=1``; first
@@ -573,10 +574,24 @@ def _solver_compiler_options() -> dict[str, Any] | None:
     programs (``method="single_shooting"``, the suite's 10-interval asymmetric slew with 4 starts,
     two runs each): first call 19.2-20.7 -> 16.9-17.1 s (compiles 4.5 + 5.1 -> 2.9 + 3.3 s),
     the solve 1.78-1.86 against 1.70-1.90 s, the same time to 1e-12. Only on the CPU: not
-    measured on a GPU. One tiny compile decides what the installed XLA accepts."""
+    measured on a GPU. One tiny compile decides what the installed XLA accepts.
+
+    Optimisation level 1 (``xla_backend_optimization_level``; session 59, jaxlib 0.10.2, float64,
+    XLA compile and the second call's solve, the two programs side by side on one core each,
+    cores swapped): Bilimoria-Wie at 12 intervals with a rate bound, compile 6.90-6.98 -> 5.43-5.44 s
+    and solve 0.88-0.93 -> 0.63-0.70 s, the same 13 iterations and time to 1e-15; the minimum-energy
+    slew with a keep-out cone 5.40 -> 4.85 s and 0.033 -> 0.030 s; with three wheels 5.95 -> 5.33 s
+    and 0.051 -> 0.041 s; a user model (a damped body with a payload quaternion) 13.95 -> 12.97 s and
+    0.239 -> 0.215 s, its cost to 2e-16; the single-shooting solver's two programs (10 intervals, 4
+    starts) 12.43 -> 11.20 s and 2.62 -> 2.00 s (its best start's time 2.3617159 -> 2.3618372: that
+    solver's iterates depend on rounding, ``time_optimal.py``). Level 0 compiled Bilimoria-Wie in
+    2.48 s but solved in 5.48 s. Session 20's measurement had level 1 slower (above); XLA's code
+    generation has changed since."""
     if jax.default_backend() != "cpu":
         return None
-    candidates: list[dict[str, Any]] = [{"xla_disable_hlo_passes": "while-loop-invariant-code-motion"}]
+    candidates: list[dict[str, Any]] = [
+        {"xla_disable_hlo_passes": "while-loop-invariant-code-motion", "xla_backend_optimization_level": 1}
+    ]
     try:
         if tuple(int(x) for x in version("jaxlib").split(".")[:2]) < (0, 11):
             candidates.insert(0, {**candidates[0], "xla_cpu_use_fusion_emitters": False})
