@@ -549,9 +549,9 @@ def _one_lapack_thread():
 def _solver_compiler_options() -> dict[str, Any] | None:
     """The XLA options of the solvers' programs (:func:`solver_jit`, and the diagnosis of
     :func:`redundant_final`; for these ``jit`` calls only), on the CPU: XLA's older elemental
-    emitters (``xla_cpu_use_fusion_emitters`` off) where the installed XLA knows the option, and
-    its while-loop-invariant code motion pass off, and LLVM at optimisation level 1 (XLA's
-    default 2); None where none applies.
+    emitters (``xla_cpu_use_fusion_emitters`` off) where the installed XLA knows the option, its
+    while-loop-invariant code motion pass off, LLVM at optimisation level 1 (XLA's default 2) and
+    XLA's fast-compile preset where known; None off the CPU.
 
     The solver is a large program run once per call, so its compile time is what a first call
     waits for. Measured (float64, one start, this 2-core EPYC, ``OPENBLAS_NUM_THREADS=1``; first
@@ -586,15 +586,26 @@ def _solver_compiler_options() -> dict[str, Any] | None:
     starts) 12.43 -> 11.20 s and 2.62 -> 2.00 s (its best start's time 2.3617159 -> 2.3618372: that
     solver's iterates depend on rounding, ``time_optimal.py``). Level 0 compiled Bilimoria-Wie in
     2.48 s but solved in 5.48 s. Session 20's measurement had level 1 slower (above); XLA's code
-    generation has changed since."""
+    generation has changed since.
+
+    XLA's fast-compile preset (``xla_cpu_opt_preset``, the proto's ``CPU_OPT_PRESET_FAST_COMPILE``;
+    session 59, with level 1, the same machine and pairing): it compiles about as fast but runs
+    faster, Bilimoria-Wie's solve at 80 intervals (one start) 1.29-1.36 -> 1.00-1.02 s and its
+    compile 5.91-6.12 -> 6.00-6.27 s, at 12 intervals 0.80 -> 0.62 s, the same 45 and 13
+    iterations and times to the last digit; the suite's optimal-control and time-optimal files
+    244.6-253.3 -> 231.9-237.6 s. Its program has 574 fusions against 481 (the same 14 while
+    loops); which of the preset's changes makes the difference was not isolated. Each option is
+    asked for only where the installed XLA accepts it: the first candidate whose probe compiles."""
     if jax.default_backend() != "cpu":
         return None
-    candidates: list[dict[str, Any]] = [
-        {"xla_disable_hlo_passes": "while-loop-invariant-code-motion", "xla_backend_optimization_level": 1}
-    ]
+    base: dict[str, Any] = {
+        "xla_disable_hlo_passes": "while-loop-invariant-code-motion",
+        "xla_backend_optimization_level": 1,
+    }
+    candidates = [{**base, "xla_cpu_opt_preset": "CPU_OPT_PRESET_FAST_COMPILE"}, base]
     try:
         if tuple(int(x) for x in version("jaxlib").split(".")[:2]) < (0, 11):
-            candidates.insert(0, {**candidates[0], "xla_cpu_use_fusion_emitters": False})
+            candidates = [{**c, "xla_cpu_use_fusion_emitters": False} for c in candidates] + candidates
     except (PackageNotFoundError, ValueError):
         pass
     for options in candidates:
