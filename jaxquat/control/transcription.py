@@ -576,9 +576,9 @@ def _solver_compiler_options() -> dict[str, Any] | None:
     the solve 1.78-1.86 against 1.70-1.90 s, the same time to 1e-12. Only on the CPU: not
     measured on a GPU. One tiny compile decides what the installed XLA accepts.
 
-    Optimisation level 1 (``xla_backend_optimization_level``; session 59, jaxlib 0.10.2, float64,
-    XLA compile and the second call's solve, the two programs side by side on one core each,
-    cores swapped): Bilimoria-Wie at 12 intervals with a rate bound, compile 6.90-6.98 -> 5.43-5.44 s
+    Optimisation level 1 (``xla_backend_optimization_level``; session 59, a 2-core Intel Xeon,
+    jaxlib 0.10.2, float64, XLA compile and the second call's solve, the two programs side by side
+    on one core each, cores swapped): Bilimoria-Wie at 12 intervals with a rate bound, compile 6.90-6.98 -> 5.43-5.44 s
     and solve 0.88-0.93 -> 0.63-0.70 s, the same 13 iterations and time to 1e-15; the minimum-energy
     slew with a keep-out cone 5.40 -> 4.85 s and 0.033 -> 0.030 s; with three wheels 5.95 -> 5.33 s
     and 0.051 -> 0.041 s; a user model (a damped body with a payload quaternion) 13.95 -> 12.97 s and
