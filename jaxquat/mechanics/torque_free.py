@@ -332,13 +332,13 @@ def _attitude(k: _Motion, psi: Array, wa: Array, wb: Array, wc: Array) -> tuple[
     over ``(..., 3)`` and ``(..., 4)`` elements, each evaluating the shared work again."""
     ea, eb, ec, e, moments = k.ea, k.eb, k.ec, k.e, k.moments
     w = [wa * ea[i] + wb * eb[i] + wc * ec[i] for i in range(3)]
-    p = _toward([moments[i] * w[i] for i in range(3)], e)
+    p = _toward([moments[i] * w[i] for i in range(3)], e, k.ell)  # |I w| = |L| at every time
     sin_half, cos_half = _trig.sincos(psi / 2)
     r = [cos_half] + [x * sin_half for x in e]
     return _quaternion.multiply_dense(_quaternion.multiply_dense(list(k.left), r), p), w
 
 
-def _toward(n: Sequence[Array], e: Sequence[Array]) -> list[Array]:
+def _toward(n: Sequence[Array], e: Sequence[Array], norm: Array | None = None) -> list[Array]:
     """The components of the minimal rotation taking the direction of ``n`` onto the unit ``e``,
     for ``n.e >= 0``: ``(|n| + n.e, n x e)`` normalised (its norm squared is ``2 |n| (|n| +
     n.e)``). The same for every positive scale of ``n``, so the callers pass the momentum ``I w``
@@ -346,8 +346,14 @@ def _toward(n: Sequence[Array], e: Sequence[Array]) -> list[Array]:
     path, 1000 bodies x 101 times, one pinned core of a 2-core Intel Xeon, first call 2.59-2.61 ->
     2.50-2.52 s in float32 and 2.66-2.68 -> 2.52-2.55 s in float64, the call 55 -> 51-52 ms in
     float64, the gradient 1-3 % less; session 60). Its range is that of ``|L|``, whose square
-    ``_motion`` forms as well, within a factor of 2 (``2 |n| (|n| + n.e) <= 4 |L|^2``)."""
-    norm = jnp.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    ``_motion`` forms as well, within a factor of 2 (``2 |n| (|n| + n.e) <= 4 |L|^2``).
+
+    ``norm``, where given, is ``|n|`` known beforehand: :func:`_attitude` passes the conserved
+    ``|L|`` (``|I w(t)| = |L|`` at every time), which saves a square root per time and two of
+    ``simulate``'s kernels; the result is unit to rounding and its derivatives are the same
+    function's."""
+    if norm is None:
+        norm = jnp.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
     scalar = norm + (n[0] * e[0] + n[1] * e[1] + n[2] * e[2])
     inv = jax.lax.rsqrt(2 * norm * scalar)
     cross = (n[1] * e[2] - n[2] * e[1], n[2] * e[0] - n[0] * e[2], n[0] * e[1] - n[1] * e[0])
