@@ -335,6 +335,62 @@ def test_sums_lower_to_one_variadic_reduce_on_cpu_only():
     assert not re.search(r"%\w+:\d+ = stablehlo\.reduce\(", module(three, x, platform="cuda"))
 
 
+def _spread_step(spread):
+    """A small function of ``x`` (3 elements) through broadcasts of three functions of it along a
+    new axis of 4 (``spread``: ``_fusion.spread`` or ``jnp.broadcast_to``), for the derivative tests."""
+
+    def step(x):
+        t = jnp.linspace(0.5, 2.0, 4, dtype=x.dtype)[None]
+        a, b, c = spread((x * x, jnp.sin(x), x), 4)
+        return jnp.sum(jnp.cos(a * t) * b + c * c * t)
+
+    return step
+
+
+def _spread_reference(xs, length):
+    return tuple(jnp.broadcast_to(x[..., None], x.shape + (length,)) for x in xs)
+
+
+def test_spread_is_the_broadcast_to_every_transform():
+    """``grad``, ``jvp``, ``jacfwd``, ``linearize``, the Hessian both ways, the gradient of a
+    ``jvp``, ``vmap`` (with an unbatched operand), ``jax.checkpoint`` (nothing saved, everything
+    saved): through ``spread`` the same as through ``jnp.broadcast_to``, to rounding (its
+    cotangents are summed in one loop, in another order); ``check_grads`` to order 2; on CPU the
+    cotangents of three broadcasts are one ``reduce`` with three results."""
+    x = jnp.asarray(np.random.default_rng(4).uniform(0.1, 1.0, size=(3,)), DTYPE)
+    dx = jnp.asarray(np.random.default_rng(5).normal(size=(3,)), DTYPE)
+    step, plain = _spread_step(_fusion.spread), _spread_step(_spread_reference)
+    tol = dict(rtol=64 * EPS, atol=64 * EPS)
+    transforms = (
+        lambda f: jax.grad(f)(x),
+        lambda f: jax.jvp(f, (x,), (dx,))[1],
+        lambda f: jax.jacfwd(f)(x),
+        lambda f: jax.hessian(f)(x),
+        lambda f: jax.jacrev(jax.jacfwd(f))(x),
+        lambda f: jax.grad(lambda x: jax.jvp(f, (x,), (dx,))[1])(x),
+        lambda f: jax.linearize(f, x)[1](dx),
+        lambda f: jax.grad(jax.checkpoint(f))(x),
+        lambda f: jax.grad(jax.checkpoint(f, policy=jax.checkpoint_policies.everything_saveable))(x),
+        lambda f: jax.jacfwd(jax.grad(jax.checkpoint(f)))(x),
+        lambda f: jax.vmap(jax.grad(f))(jnp.stack([x, 2 * x])),
+    )
+    # every transform in one program per form
+    got, want = (jax.jit(lambda f=f: [t(f) for t in transforms])() for f in (step, plain))
+    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+        np.testing.assert_allclose(a, b, **tol)
+    mapped, unmapped = jax.vmap(lambda a, b: _fusion.spread((a, b), 2), in_axes=(0, None), out_axes=(0, None))(
+        jnp.stack([x, 2 * x]), x
+    )
+    np.testing.assert_array_equal(mapped, jnp.broadcast_to(jnp.stack([x, 2 * x])[..., None], (2, 3, 2)))
+    np.testing.assert_array_equal(unmapped, jnp.broadcast_to(x[:, None], (3, 2)))
+    check_grads(jax.jit(step), (x,), order=2, modes=["fwd", "rev"])
+    with pytest.raises(ValueError, match="spread: every array must have one shape"):
+        _fusion.spread((x, x[:2]), 4)
+    if jax.default_backend() == "cpu":
+        backward = jax.jit(jax.grad(step)).lower(x).as_text()
+        assert re.search(r"%\w+:3 = stablehlo\.reduce\(", backward), backward
+
+
 def test_sums_reject_an_axis_out_of_range_and_keep_dtypes():
     x = jnp.ones((3, 4), DTYPE)
     with pytest.raises(ValueError, match="sums: axis 2 out of range for arrays of 2 dimensions"):

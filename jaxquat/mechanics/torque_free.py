@@ -190,19 +190,28 @@ class _Motion(NamedTuple):
 
     def at_times(self, t: Array) -> _Motion:
         """Each field broadcast to the shape of the times ``t`` (``batch + T``), once: reverse mode
-        then sums each per-body cotangent over the times once, not at every use."""
+        then sums each per-body cotangent over the times once, not at every use. With one axis of
+        times (``simulate``'s case) the broadcasts are one :func:`jaxquat._fusion.spread`, whose
+        cotangents are summed in one loop, not a reduction (a kernel) each: ``simulate``'s default
+        gradient program (1000 bodies x 101 times) 413 -> 338 fusions, its first call 8.04-8.20 ->
+        7.44-7.71 s in float32 and 8.11-8.17 -> 7.59-7.73 s in float64, later calls 97-105 -> 94-101
+        ms and 248-250 -> 237-238 ms (one pinned core of a 2-core Intel Xeon, session 60)."""
         extra = (None,) * (t.ndim - self.m.ndim)
-
-        def spread(x):
-            return jnp.broadcast_to(x[(..., *extra)], t.shape)
-
+        names = [name for name in self._fields if name != "agm"]
+        flat = [y for name in names for y in (getattr(self, name) if name in _VECTORS else (getattr(self, name),))]
+        if len(extra) == 1 and t.shape[:-1] == self.m.shape:  # one axis of times: the cotangents in one loop
+            spread = iter(_fusion.spread(flat, t.shape[-1]))
+        else:
+            spread = iter(jnp.broadcast_to(x[(..., *extra)], t.shape) for x in flat)
         fields = {
-            name: tuple(spread(y) for y in x) if isinstance(x, tuple) else spread(x)
-            for name, x in self._asdict().items()
-            if name != "agm"
+            name: tuple(next(spread) for _ in getattr(self, name)) if name in _VECTORS else next(spread)
+            for name in names
         }
         agm = (tuple(x[(..., *extra)] for x in self.agm[0]), self.agm[1][(..., *extra)])
         return _Motion(**fields, agm=agm)  # pyright: ignore[reportArgumentType]
+
+
+_VECTORS = frozenset(("e", "moments", "ea", "eb", "ec", "left"))  # the _Motion fields held as tuples
 
 
 def _motion(q0: Array, w0: list[Array], moments: list[Array], a: Array, b: Array, c: Array) -> _Motion:
