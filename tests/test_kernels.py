@@ -282,16 +282,13 @@ def _sums_step(summed):
     return step
 
 
-def test_sums_derivatives_are_those_of_the_sums():
-    """``grad``, ``jvp``, ``jacfwd``, ``linearize``, the Hessian both ways, the gradient of a
-    ``jvp``, ``vmap`` (with an unbatched operand), ``jax.checkpoint``: through ``sums`` the same
-    as through ``jnp.sum``, to rounding (the loops add in another order); ``check_grads`` to
-    order 2. Under ``jvp`` the values and the tangents share one bind, which ``linearize`` and
-    remat split again (the partial-evaluation rules of ``jaxquat._fusion``)."""
-    x = jnp.asarray(np.random.default_rng(2).uniform(0.1, 1.0, size=(3, 5)), DTYPE)
-    dx = jnp.asarray(np.random.default_rng(3).normal(size=(3, 5)), DTYPE)
-    step, plain = _sums_step(_fusion.sums), _sums_step(_sums_reference)
-    tol = dict(rtol=64 * EPS, atol=64 * EPS)
+def _assert_the_same_under_every_transform(step, plain, x, dx):
+    """``step`` (a scalar function of ``x`` through a primitive of ``jaxquat._fusion``) and
+    ``plain`` (the same through JAX's own operations) equal to rounding under ``grad``, ``jvp``,
+    ``jacfwd``, the Hessian both ways, the gradient of a ``jvp``, ``linearize``,
+    ``jax.checkpoint`` (nothing saved, everything saved, and under ``jacfwd``) and ``vmap``, every
+    transform in one program per form (a program per transform: 22 compilations); and
+    ``check_grads`` to order 2 through ``step``."""
     transforms = (
         lambda f: jax.grad(f)(x),
         lambda f: jax.jvp(f, (x,), (dx,))[1],
@@ -301,17 +298,31 @@ def test_sums_derivatives_are_those_of_the_sums():
         lambda f: jax.grad(lambda x: jax.jvp(f, (x,), (dx,))[1])(x),
         lambda f: jax.linearize(f, x)[1](dx),
         lambda f: jax.grad(jax.checkpoint(f))(x),
+        lambda f: jax.grad(jax.checkpoint(f, policy=jax.checkpoint_policies.everything_saveable))(x),
         lambda f: jax.jacfwd(jax.grad(jax.checkpoint(f)))(x),
         lambda f: jax.vmap(jax.grad(f))(jnp.stack([x, 2 * x])),
     )
-    # every transform in one program per form (a program per transform: 20 compilations)
     got, want = (jax.jit(lambda f=f: [t(f) for t in transforms])() for f in (step, plain))
     for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
-        np.testing.assert_allclose(a, b, **tol)
+        np.testing.assert_allclose(a, b, rtol=64 * EPS, atol=64 * EPS)
+    check_grads(jax.jit(step), (x,), order=2, modes=["fwd", "rev"])
+
+
+def test_sums_derivatives_are_those_of_the_sums():
+    """``grad``, ``jvp``, ``jacfwd``, ``linearize``, the Hessian both ways, the gradient of a
+    ``jvp``, ``vmap`` (with an unbatched operand), ``jax.checkpoint`` (nothing saved, everything
+    saved): through ``sums`` the same as through ``jnp.sum``, to rounding (the loops add in
+    another order); ``check_grads`` to order 2. Under ``jvp`` the values and the tangents share
+    one bind, which ``linearize`` and remat split again (the partial-evaluation rules of
+    ``jaxquat._fusion``)."""
+    x = jnp.asarray(np.random.default_rng(2).uniform(0.1, 1.0, size=(3, 5)), DTYPE)
+    dx = jnp.asarray(np.random.default_rng(3).normal(size=(3, 5)), DTYPE)
+    step = _sums_step(_fusion.sums)
+    _assert_the_same_under_every_transform(step, _sums_step(_sums_reference), x, dx)
+    tol = dict(rtol=64 * EPS, atol=64 * EPS)
     mapped, unmapped = jax.vmap(lambda a, b: _fusion.sums((a, b), 0), in_axes=(0, None), out_axes=(0, None))(x, x[0])
     np.testing.assert_allclose(mapped, jnp.sum(x, axis=1), **tol)
     np.testing.assert_allclose(unmapped, jnp.sum(x[0]), **tol)
-    check_grads(jax.jit(step), (x,), order=2, modes=["fwd", "rev"])
 
 
 @pytest.mark.skipif(not X64, reason="a lowering test: its verdict does not depend on the dtype")
@@ -359,31 +370,13 @@ def test_spread_is_the_broadcast_to_every_transform():
     cotangents of three broadcasts are one ``reduce`` with three results."""
     x = jnp.asarray(np.random.default_rng(4).uniform(0.1, 1.0, size=(3,)), DTYPE)
     dx = jnp.asarray(np.random.default_rng(5).normal(size=(3,)), DTYPE)
-    step, plain = _spread_step(_fusion.spread), _spread_step(_spread_reference)
-    tol = dict(rtol=64 * EPS, atol=64 * EPS)
-    transforms = (
-        lambda f: jax.grad(f)(x),
-        lambda f: jax.jvp(f, (x,), (dx,))[1],
-        lambda f: jax.jacfwd(f)(x),
-        lambda f: jax.hessian(f)(x),
-        lambda f: jax.jacrev(jax.jacfwd(f))(x),
-        lambda f: jax.grad(lambda x: jax.jvp(f, (x,), (dx,))[1])(x),
-        lambda f: jax.linearize(f, x)[1](dx),
-        lambda f: jax.grad(jax.checkpoint(f))(x),
-        lambda f: jax.grad(jax.checkpoint(f, policy=jax.checkpoint_policies.everything_saveable))(x),
-        lambda f: jax.jacfwd(jax.grad(jax.checkpoint(f)))(x),
-        lambda f: jax.vmap(jax.grad(f))(jnp.stack([x, 2 * x])),
-    )
-    # every transform in one program per form
-    got, want = (jax.jit(lambda f=f: [t(f) for t in transforms])() for f in (step, plain))
-    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
-        np.testing.assert_allclose(a, b, **tol)
+    step = _spread_step(_fusion.spread)
+    _assert_the_same_under_every_transform(step, _spread_step(_spread_reference), x, dx)
     mapped, unmapped = jax.vmap(lambda a, b: _fusion.spread((a, b), 2), in_axes=(0, None), out_axes=(0, None))(
         jnp.stack([x, 2 * x]), x
     )
     np.testing.assert_array_equal(mapped, jnp.broadcast_to(jnp.stack([x, 2 * x])[..., None], (2, 3, 2)))
     np.testing.assert_array_equal(unmapped, jnp.broadcast_to(x[:, None], (3, 2)))
-    check_grads(jax.jit(step), (x,), order=2, modes=["fwd", "rev"])
     with pytest.raises(ValueError, match="spread: every array must have one shape"):
         _fusion.spread((x, x[:2]), 4)
     if jax.default_backend() == "cpu":
