@@ -343,10 +343,10 @@ def spread(xs: Sequence[Array], length: int) -> tuple[Array, ...]:
     cotangents summed back over that axis by :func:`sums`, in one loop instead of one reduction
     (one kernel) each. A linear primitive: its tangent is itself.
 
-    Why: the closed-form torque-free solution broadcasts 24 per-body quantities to every saved
-    time (``jaxquat.mechanics.torque_free._Motion.at_times``); reverse mode summed each
-    cotangent in a reduction of its own, 24 of the 413 kernels of ``simulate``'s default
-    gradient program (1000 bodies x 101 times; session 60)."""
+    Why: the closed-form torque-free solution broadcasts 44 per-body arrays to every saved time
+    (``jaxquat.mechanics.torque_free._Motion.at_times``), and reverse mode summed each cotangent
+    in a reduction of its own: ``simulate``'s default gradient program (1000 bodies x 101 times)
+    had 413 fusions, 338 with this (``_Motion.at_times`` has the times; session 60)."""
     _check([jnp.shape(x) for x in xs], "spread")
     return tuple(_spread_p.bind(*xs, length=length))
 
