@@ -1,5 +1,6 @@
 """One loop for many outputs on CPU: :func:`one_loop`, :func:`one_loop_backward`,
-:func:`one_loop_both_ways`; and :func:`sums`, many sums over one axis in one loop.
+:func:`one_loop_both_ways`; :func:`sums`, many sums over one axis in one loop; and
+:func:`spread`, many broadcasts along a new axis whose cotangents are those sums.
 
 XLA's CPU compiler (jaxlib 0.10.2, its defaults) gives every output array of an element-wise
 computation a kernel of its own and copies into each kernel every producer it needs: a step
