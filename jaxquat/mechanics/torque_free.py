@@ -197,21 +197,13 @@ class _Motion(NamedTuple):
         7.44-7.71 s in float32 and 8.11-8.17 -> 7.59-7.73 s in float64, later calls 97-105 -> 94-101
         ms and 248-250 -> 237-238 ms (one pinned core of a 2-core Intel Xeon, session 60)."""
         extra = (None,) * (t.ndim - self.m.ndim)
-        names = [name for name in self._fields if name != "agm"]
-        flat = [y for name in names for y in (getattr(self, name) if name in _VECTORS else (getattr(self, name),))]
+        flat, tree = jax.tree.flatten(self._replace(agm=None))  # pyright: ignore[reportArgumentType]
         if len(extra) == 1 and t.shape[:-1] == self.m.shape:  # one axis of times: the cotangents in one loop
-            spread = iter(_fusion.spread(flat, t.shape[-1]))
+            spread = list(_fusion.spread(flat, t.shape[-1]))
         else:
-            spread = iter(jnp.broadcast_to(x[(..., *extra)], t.shape) for x in flat)
-        fields = {
-            name: tuple(next(spread) for _ in getattr(self, name)) if name in _VECTORS else next(spread)
-            for name in names
-        }
+            spread = [jnp.broadcast_to(x[(..., *extra)], t.shape) for x in flat]
         agm = (tuple(x[(..., *extra)] for x in self.agm[0]), self.agm[1][(..., *extra)])
-        return _Motion(**fields, agm=agm)  # pyright: ignore[reportArgumentType]
-
-
-_VECTORS = frozenset(("e", "moments", "ea", "eb", "ec", "left"))  # the _Motion fields held as tuples
+        return jax.tree.unflatten(tree, spread)._replace(agm=agm)
 
 
 def _motion(q0: Array, w0: list[Array], moments: list[Array], a: Array, b: Array, c: Array) -> _Motion:
