@@ -292,10 +292,17 @@ def _atan2_value(y: Array, x: Array) -> Array:
     swap = ay > ax
     num = jnp.where(swap, ax, ay)
     den = jnp.where(swap, ay, ax)
-    r = _atan_unit(divide(num, jnp.where(den == 0, 1.0, den)))
-    r = jnp.where(swap, (np.pi / 2) - r, r)
-    r = jnp.where(jnp.signbit(x), np.pi - r, r)
+    r = atan2_of_ratio(divide(num, jnp.where(den == 0, 1.0, den)), swap, x)
     return jnp.where(jnp.signbit(y), -r, r)
+
+
+def atan2_of_ratio(ratio: Array, swap: Array, x: Array) -> Array:
+    """``atan2(|y|, x)`` from ``ratio = min(|y|, |x|) / max(|y|, |x|)`` and ``swap = |y| > |x|``:
+    :func:`atan2`'s value for a caller that has the reciprocal of the larger for other uses too
+    (``jaxquat._safe``'s kernel form of ``atan2_over_n``; not differentiated on its own)."""
+    r = _atan_unit(ratio)
+    r = jnp.where(swap, (np.pi / 2) - r, r)
+    return jnp.where(jnp.signbit(x), np.pi - r, r)
 
 
 @atan2.defjvp
