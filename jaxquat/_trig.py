@@ -83,7 +83,7 @@ _COS32 = (4.166664568298827e-2, -1.388731625493765e-3, 2.443315711809948e-5)
 _PIO2_64 = (1.57079632673412561417e00, 6.07710050630396597660e-11, 2.02226624871116645580e-21)
 _PIO2_32 = (1.5703125, 4.84466552734375e-4, -6.397578431460715e-7)
 
-# atan(t) = t + t^3 P(t^2) / Q(t^2) on |t| <= 0.66 (float64); t + t^3 R(t^2) on |t| <= tan(pi/8) (float32).
+# atan(t) = t + t^3 P(t^2) / Q(t^2) on |t| <= 0.66 (float64); t + t^3 R(t^2) on |t| <= 1 (float32).
 _ATAN_P = (
     -6.485021904942025371773e1,
     -1.228866684490136173410e2,
@@ -99,7 +99,22 @@ _ATAN_Q = (
     2.485846490142306297962e1,
     1.0,
 )
-_ATAN32 = (-3.33329491539e-1, 1.99777106478e-1, -1.38776856032e-1, 8.05374449538e-2)
+# R of degree 8 on the whole of [0, 1], no argument reduction: fitted (session 61) to the relative
+# error of atan by least squares reweighted towards the largest errors (Lawson), 2.6e-9 in exact
+# arithmetic, 1.11 ulp evaluated in float32 by Horner's rule at 4e6 points. It replaced Cephes'
+# atanf polynomial of degree 3 on [0, tan(pi/8)] after the reduction t -> (t - 1) / (t + 1) above
+# it, whose division is a reciprocal by Newton's steps in a kernel: 26 operations fewer per atan2.
+_ATAN32 = (
+    -0.33333299079668843,
+    0.1999854804896232,
+    -0.14264239610591065,
+    0.10952176891346682,
+    -0.0840342932723412,
+    0.05795730888993047,
+    -0.03117762863596214,
+    0.010914521170806072,
+    -0.0017936092789473464,
+)
 
 
 def _poly(z: Array, coeffs) -> Array:
@@ -267,17 +282,15 @@ def cos(x: Array) -> Array:
 
 def _atan_unit(a: Array) -> Array:
     """``atan(a)`` for ``0 <= a <= 1``."""
-    wide = _is64(a)
-    split = 0.66 if wide else 0.41421356237309503
-    big = a > split
+    if not _is64(a):  # float32: one polynomial on [0, 1]
+        z = a * a
+        return a + a * z * _poly(z, _ATAN32)
+    big = a > 0.66
     t = jnp.where(big, divide(a - 1.0, a + 1.0), a)
     z = t * t
-    if wide:
-        kernel = t + t * z * divide(_poly(z, _ATAN_P), _poly(z, _ATAN_Q))
-        # pi/4 as a double plus the part of it a double cannot hold
-        return jnp.where(big, (0.7853981633974483 + kernel) + 3.061616997868383e-17, kernel)
-    kernel = t + t * z * _poly(z, _ATAN32)
-    return jnp.where(big, 0.7853981633974483 + kernel, kernel)
+    kernel = t + t * z * divide(_poly(z, _ATAN_P), _poly(z, _ATAN_Q))
+    # pi/4 as a double plus the part of it a double cannot hold
+    return jnp.where(big, (0.7853981633974483 + kernel) + 3.061616997868383e-17, kernel)
 
 
 @jax.custom_jvp
