@@ -101,10 +101,12 @@ def test_symmetric_180_torque_is_bang_bang_where_the_switching_function_is_nonze
 
 def test_warm_start_keeps_feasibility_and_does_not_lose_time(asymmetric):
     """(Same intervals as the fixture, so the suite compiles the solver once; the example
-    warm-starts onto 2x and 4x the intervals.)"""
+    warm-starts onto 2x and 4x the intervals.) The init, a converged result on its own grid, is
+    one of the candidates, so the time is at most the init's to rounding (1e-12 relative; the
+    refine's Newton steps from a KKT point move it by about 1e-16)."""
     finer = jq.minimum_time_reorientation(INERTIA, BOUND, Q0, QF, omegaf=WF, **dict(FAST, outer=3), init=asymmetric)
     assert float(finer.violation) < 1e-5
-    assert float(finer.time) <= float(asymmetric.time) * (1 + 1e-6)
+    assert float(finer.time) <= float(asymmetric.time) * (1 + 1e-12)
 
 
 # ------------------------------------------------ the default: multiple shooting, interior point

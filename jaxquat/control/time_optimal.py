@@ -383,7 +383,9 @@ def minimum_time_reorientation(
     Newton-KKT steps per start. Returns the shortest converged start with violation ``<= tol``
     (or the shortest feasible one) as a :class:`Reorientation`. With ``init``, the earlier torque
     held on this grid is one of the candidates where it meets ``tol`` (in the place of the start
-    that ended longest), so a warm start never returns a longer time than its init. Which local optimum its
+    that ended longest), so a warm start from a converged result on its own grid never returns a
+    longer time (on a finer grid the held torque is a candidate only where it still meets
+    ``tol``, and a converged start is preferred to it). Which local optimum its
     fixed-budget L-BFGS phase reaches can depend on the CPU's rounding (the module docstring);
     ``tol`` (1e-6), ``outer`` (10), ``inner`` (200), ``mu`` (10), ``refine`` (20) and ``progress``
     apply to it only (given with the interior-point method they raise ``ValueError``). If no
@@ -583,9 +585,10 @@ def minimum_time_reorientation(
     if bar is not None:
         bar.close()
     if held is not None and held_violation <= tol:
-        # A warm start never returns a longer time than its init where the init meets the
-        # terminal conditions on this grid: the init takes the place of the start that ended
-        # longest (or infeasible) and is converged and chosen between as the others are. Full
+        # The init, where it meets the terminal conditions on this grid, takes the place of the
+        # start that ended longest (or infeasible) and is converged and chosen between as the
+        # others are: from a converged init on its own grid (a KKT point, where the Newton steps
+        # stay) a warm start never returns a longer time. Full
         # Newton steps from an augmented-Lagrangian iterate can reach a KKT point of a longer time
         # (session 61: the suite's asymmetric slew warm-started on its own grid, 1.9185 -> 1.9345
         # s, where derivatives changed at rounding level had moved the iterates).
