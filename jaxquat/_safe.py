@@ -191,16 +191,13 @@ def _atan2_over_n_parts(nsq: Array, w: Array) -> tuple[Array, Array, Array]:
     """``(f, df/dnsq, df/dw)`` of :func:`atan2_over_n`."""
     if _trig.in_kernel():
         return _atan2_over_n_kernel(nsq, w)
-    small = (w > 0) & (nsq < _ATAN_SWITCH * w * w)
+    small, small_n = _atan_series_rows(nsq, w)
     w_safe = jnp.where(small, w, 1.0)
     x2 = jnp.where(small, _trig.divide(nsq, w_safe * w_safe), 0.0)
     taylor = _trig.divide(_horner(x2, _ATAN), w_safe)
     # d/dnsq of (1/w) sum_k a_k (nsq/w^2)^k, on its own, wider interval
-    small_n = (w > 0) & (nsq < _ATAN_DERIVATIVE_SWITCH * w * w)
     w_n = jnp.where(small_n, w, 1.0)
-    inv = _trig.divide(1.0, w_n)
-    x2_n = jnp.where(small_n, nsq * (inv * inv), 0.0)
-    taylor_n = _horner(x2_n, _ATAN_DERIVATIVE[64 if nsq.dtype == jnp.float64 else 32]) * (inv * inv * inv)
+    taylor_n = _atan_derivative_series(nsq, small_n, _trig.divide(1.0, w_n))
     degenerate = small | (nsq <= 0)
     nsq_safe = jnp.where(degenerate, 1.0, nsq)
     n_safe = _trig.sqrt(nsq_safe)
@@ -211,6 +208,19 @@ def _atan2_over_n_parts(nsq: Array, w: Array) -> tuple[Array, Array, Array]:
     f_n = jnp.where(small_n, taylor_n, _trig.divide(w * r - f, 2.0 * nsq_n))
     f, f_n, f_w = _arrays.scalars(f, f_n, -r)
     return f, f_n, f_w
+
+
+def _atan_series_rows(nsq: Array, w: Array) -> tuple[Array, Array]:
+    """The rows where :func:`atan2_over_n`'s value takes its series, and (a wider set) where its
+    derivative in ``nsq`` does."""
+    return (w > 0) & (nsq < _ATAN_SWITCH * w * w), (w > 0) & (nsq < _ATAN_DERIVATIVE_SWITCH * w * w)
+
+
+def _atan_derivative_series(nsq: Array, rows: Array, inv: Array) -> Array:
+    """``d/dnsq`` of ``(1/w) atan(x)/x`` (``x^2 = nsq / w^2``) by its series, on ``rows``;
+    ``inv`` is ``1/w`` there."""
+    x2 = jnp.where(rows, nsq * (inv * inv), 0.0)
+    return _horner(x2, _ATAN_DERIVATIVE[64 if nsq.dtype == jnp.float64 else 32]) * (inv * inv * inv)
 
 
 def _atan2_over_n_kernel(nsq: Array, w: Array) -> tuple[Array, Array, Array]:
@@ -226,8 +236,7 @@ def _atan2_over_n_kernel(nsq: Array, w: Array) -> tuple[Array, Array, Array]:
     shares): the gradient of ``sum(to_rotvec(q))`` 9.3-9.7 -> 8.1-8.4 ms in float32 and 19-25 ->
     17-18 ms in float64; ``slerp``'s value 13.8 -> 11.4-11.6 ms and gradient 17.1-17.4 -> 13.8-14.0
     ms in float32, 29-38 -> 26 ms and 34-44 -> 32 ms in float64."""
-    small = (w > 0) & (nsq < _ATAN_SWITCH * w * w)
-    small_n = (w > 0) & (nsq < _ATAN_DERIVATIVE_SWITCH * w * w)  # contains small
+    small, small_n = _atan_series_rows(nsq, w)  # small_n contains small
     degenerate = small | (nsq <= 0)
     aw = jnp.abs(w)
     nsq_safe = jnp.where(degenerate, 1.0, nsq)  # as in _atan2_over_n_parts: n = 1 where nsq <= 0
@@ -239,8 +248,7 @@ def _atan2_over_n_kernel(nsq: Array, w: Array) -> tuple[Array, Array, Array]:
     angle = _trig.atan2_of_ratio(jnp.where(swap, aw, n) * inv, swap, w)  # atan2(n, w)
     x2 = jnp.where(small, nsq * (inv * inv), 0.0)
     f = jnp.where(small, _horner(x2, _ATAN) * inv, angle * rs)
-    x2_n = jnp.where(small_n, nsq * (inv * inv), 0.0)
-    taylor_n = _horner(x2_n, _ATAN_DERIVATIVE[64 if nsq.dtype == jnp.float64 else 32]) * (inv * inv * inv)
+    taylor_n = _atan_derivative_series(nsq, small_n, inv)
     rsq = nsq + w * w
     r = _trig.reciprocal(jnp.where(rsq > 0, rsq, 1.0))
     direct_n = (w * r - f) * (0.5 * rs * rs)
