@@ -171,29 +171,42 @@ def assemble(*c: Array) -> Array:
     evaluates every shared subexpression (a ``sincos``) once per component. The sum of
     products fuses into an element-wise loop over whole rows. Measured on ``from_euler``'s
     kernel (10^6, this 2-core CPU, minimum of 20): 1.4 against 3.3 ms (float32), 3.1 against
-    38 ms (float64). The tangent is stacked, so reverse mode transposes it into slices of the
-    cotangent: as products, whose transpose is a sum over the minor axis, the gradient of
-    ``sum(f(x) * W)`` took 41 against 26 ms (``slerp``, float32; 4.0 against 1.1 ms for
-    ``from_euler``), though forward mode gained (``jax.jvp`` of ``slerp`` 33 against 119 ms).
-    Elsewhere (GPU, TPU) a plain stack."""
+    38 ms (float64).
+
+    A linear primitive of its own (``jaxquat_assemble``), the mirror of :func:`components`: its
+    tangent is the same sum of products of the components' tangents, fused with the expressions
+    that produce them, and its transpose the slices of the cotangent (the transpose of the
+    products would be a sum over the minor axis: the gradient of ``sum(f(x) * W)`` took 41
+    against 26 ms, ``slerp``, float32). Until session 62 the tangents were computed in one loop
+    (:func:`jaxquat._fusion.one_loop`) into arrays of their own and then stacked: a second pass,
+    and temporaries that glibc's allocator mapped afresh at many calls (``docs/benchmarks.md``,
+    session 62, has the figures). Elsewhere (GPU, TPU) a plain stack."""
+    c = jnp.broadcast_arrays(*c)
     if _trig.in_kernel():
-        return jnp.stack(jnp.broadcast_arrays(*c), axis=-1)
-    return _assemble(*c)
+        return jnp.stack(c, axis=-1)
+    dtype = jnp.result_type(*c)
+    return _trig.on_cpu(
+        lambda *c: _assemble_p.bind(*c), lambda *c: jnp.stack(c, axis=-1), *(x.astype(dtype) for x in c)
+    )
 
 
-@jax.custom_jvp
-def _assemble(*c: Array) -> Array:
-    return _trig.on_cpu(by_products, lambda *c: jnp.stack(c, axis=-1), *c)
+_assemble_p = Primitive("jaxquat_assemble")
 
 
-@_assemble.defjvp
-def _assemble_jvp(primals, tangents):
-    """The tangents stacked after one loop computes them all (:func:`jaxquat._fusion.one_loop`):
-    a stack fused with their expressions evaluates the shared work once per component, as the
-    value's would. One ``jvp`` at 10^6 (float32, one core, least of 9), this change alone:
-    ``from_euler`` 95 -> 19 ms, ``slerp`` 240 -> 41 ms (4.2 and 30 ms with :func:`components`'
-    split tangents too). Reverse mode transposes the loop into the identity."""
-    return _assemble(*primals), jnp.stack(_fusion.one_loop(jnp.broadcast_arrays(*tangents)), axis=-1)
+def _assemble_transpose(ct, *c):
+    """The components' cotangents: the slices of the cotangent ``ct`` (a split)."""
+    if type(ct) is ad.Zero:
+        return [ad.Zero(x.aval) if ad.is_undefined_primal(x) else None for x in c]
+    parts = split(ct)
+    return [p if ad.is_undefined_primal(x) else None for p, x in zip(parts, c)]
+
+
+def _assemble_batch(args, dims):
+    size = next(a.shape[d] for a, d in zip(args, dims) if d is not None)
+    moved = [
+        jnp.moveaxis(a, d, 0) if d is not None else jnp.broadcast_to(a, (size,) + a.shape) for a, d in zip(args, dims)
+    ]
+    return _assemble_p.bind(*moved), 0
 
 
 def by_products(*c: Array) -> Array:
@@ -201,6 +214,13 @@ def by_products(*c: Array) -> Array:
     the rows of the identity (exact for finite values), differentiated by JAX."""
     eye = jnp.eye(len(c), dtype=c[0].dtype).reshape((1,) * c[0].ndim + (len(c), len(c)))
     return functools.reduce(operator.add, [x[..., None] * eye[..., i, :] for i, x in enumerate(c)])
+
+
+_assemble_p.def_impl(by_products)
+_assemble_p.def_abstract_eval(lambda *c: c[0].update(shape=c[0].shape + (len(c),)))
+mlir.register_lowering(_assemble_p, mlir.lower_fun(by_products, multiple_results=False))
+ad.deflinear2(_assemble_p, _assemble_transpose)
+batching.primitive_batchers[_assemble_p] = _assemble_batch
 
 
 # Every matrix product in the library asks for full precision. On a GPU, JAX's default
