@@ -251,7 +251,8 @@ def test_one_inertia_for_a_batch_is_read_as_it_is_not_broadcast_to_the_batch():
     """A tensor ``(3, 3)`` shared by a batch of 1000 bodies reaches the kernels as it is (its entries
     broadcast inside their loops): no ``(1000, 3, 3)`` array in the programs, where the broadcast
     tensor was written to memory and read back (``angular_momentum`` at 10^6, float32: 16.9 ->
-    5.0 ms). A tensor per body still meets the kernels row by row."""
+    5.0 ms); the same for ``invariants`` and ``gravity_gradient_torque``. A tensor per body still
+    meets the kernels row by row."""
     q = jnp.ones((1000, 4), DTYPE)
     w = jnp.ones((1000, 3), DTYPE)
     shared = jnp.asarray([[2.0, 0.1, 0.2], [0.1, 3.0, 0.3], [0.2, 0.3, 4.0]], DTYPE)
@@ -266,6 +267,9 @@ def test_one_inertia_for_a_batch_is_read_as_it_is_not_broadcast_to_the_batch():
         "euler_parameter_mass_matrix": lambda j: jq.euler_parameter_mass_matrix(q, j),
         "euler_parameter_augmented_system": lambda j: jq.euler_parameter_augmented_system(q, q, j, w),
         "norm_constraint_multiplier": lambda j: jq.norm_constraint_multiplier(q, q, j),
+        "invariants": lambda j: jq.invariants(q, w, j),
+        "gravity_gradient_torque": lambda j: jq.gravity_gradient_torque(q, w + 5.0, j),
+        "gravity_gradient_torque, mu an array": lambda j: jq.gravity_gradient_torque(q, w + 5.0, j, jnp.ones(1000)),
     }
     for name, call in calls.items():
         assert "1000x3x3" not in jax.jit(call).lower(shared).as_text(), name

@@ -18,8 +18,6 @@ Two formulations of the same motion, shown equal in ``tests/test_dynamics.py``:
 
 from __future__ import annotations
 
-from typing import cast
-
 import jax.numpy as jnp
 from jax import Array
 from jaxtyping import ArrayLike, Float
@@ -44,26 +42,15 @@ __all__ = [
 
 def _checked_with_torque(q, rate_name: str, rate, torque, inertia) -> list[Array | None]:
     """The argument checks of a function of an attitude, its rate (``omega`` a vector or ``qdot`` a
-    quaternion), an optional torque (``None`` passed on) and an inertia, in that order (the
-    inertia :func:`_shared` where it has no batch axes)."""
+    quaternion), an optional torque (``None`` passed on) and an inertia, in that order (an inertia
+    without batch axes is not broadcast to the batch: :func:`jaxquat._checks.broadcast_batch`)."""
     kind = "vector" if rate_name == "omega" else "quaternion"
-    inertia = validated(inertia)
-    checked = _checks.optional_arguments(
+    return _checks.optional_arguments(
         **{"q": (q, "quaternion"), rate_name: (rate, kind)},
         torque=(torque, "vector?"),
-        inertia=(inertia, "inertia"),
+        inertia=(validated(inertia), "inertia"),
+        shared=("inertia",),
     )
-    return [*checked[:-1], _shared(inertia, cast(Array, checked[-1]))]
-
-
-def _shared(inertia: Array, broadcast: Array) -> Array:
-    """The validated ``inertia`` itself, in the arguments' dtype, where it has no batch axes (one
-    tensor for the whole batch), else its ``broadcast`` to the batch: the kernels read its entries
-    as scalars, which XLA broadcasts inside their loops, where the broadcast tensor
-    ``(n, 3, 3)`` was written to memory and read back. ``angular_momentum`` in the space frame at
-    10^6 (float32, one core, least of 11, session 62): 16.9 -> 5.0 ms, 38 -> 16 ms with glibc's
-    default allocation thresholds."""
-    return inertia.astype(broadcast.dtype) if inertia.ndim == 2 else broadcast
 
 
 def angular_momentum(
@@ -79,9 +66,9 @@ def angular_momentum(
     ``q`` is only used when ``frame="space"``.
     """
     frame = _checks.frame(frame)
-    inertia = validated(inertia)
-    q, omega, wide = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"), inertia=(inertia, "inertia"))
-    inertia = _shared(inertia, wide)
+    q, omega, inertia = _checks.arguments(
+        q=(q, "quaternion"), omega=(omega, "vector"), inertia=(validated(inertia), "inertia"), shared=("inertia",)
+    )
     return _arrays.compiled_rows(_angular_momentum, (1, 1, 2), q, omega, inertia, frame=frame)
 
 
@@ -118,9 +105,9 @@ def kinetic_energy(
     (23)'s mass matrix), and ``2 T`` is Schwab's multiplier ([S] eq. (24)).
     """
     frame = _checks.frame(frame)
-    inertia = validated(inertia)
-    q, omega, wide = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"), inertia=(inertia, "inertia"))
-    inertia = _shared(inertia, wide)
+    q, omega, inertia = _checks.arguments(
+        q=(q, "quaternion"), omega=(omega, "vector"), inertia=(validated(inertia), "inertia"), shared=("inertia",)
+    )
     return _arrays.compiled_rows(_kinetic_energy, (1, 1, 2), q, omega, inertia, frame=frame)
 
 
@@ -170,11 +157,13 @@ def inverse_dynamics(
     """Torque that produces a given motion: ``M = I a + w x I w`` in the body frame ([S] eq. (19),
     [C] eq. (66)); ``M_s = I0 a_s + w_s x I0 w_s`` in space ([C] eq. (62))."""
     frame = _checks.frame(frame)
-    inertia = validated(inertia)
-    q, omega, alpha, wide = _checks.arguments(
-        q=(q, "quaternion"), omega=(omega, "vector"), alpha=(alpha, "vector"), inertia=(inertia, "inertia")
+    q, omega, alpha, inertia = _checks.arguments(
+        q=(q, "quaternion"),
+        omega=(omega, "vector"),
+        alpha=(alpha, "vector"),
+        inertia=(validated(inertia), "inertia"),
+        shared=("inertia",),
     )
-    inertia = _shared(inertia, wide)
     return _arrays.compiled_rows(_inverse_dynamics, (1, 1, 1, 2), q, omega, alpha, inertia, frame=frame)
 
 
@@ -237,14 +226,13 @@ def euler_parameter_torque(
     ``a = 2 vec(q* qddot)`` (the inverse of :func:`euler_parameter_acceleration`).
     """
     frame = _checks.frame(frame)
-    inertia = validated(inertia)
-    q, qdot, qddot, wide = _checks.arguments(
+    q, qdot, qddot, inertia = _checks.arguments(
         q=(q, "quaternion"),
         qdot=(qdot, "quaternion"),
         qddot=(qddot, "quaternion"),
-        inertia=(inertia, "inertia"),
+        inertia=(validated(inertia), "inertia"),
+        shared=("inertia",),
     )
-    inertia = _shared(inertia, wide)
     return _arrays.compiled_rows(_euler_parameter_torque, (1, 1, 1, 2), q, qdot, qddot, inertia, frame=frame)
 
 
@@ -283,9 +271,7 @@ def euler_parameter_mass_matrix(
     rescaling ``q`` is not a motion); the norm constraint row of
     :func:`euler_parameter_augmented_system` makes the system solvable.
     """
-    inertia = validated(inertia)
-    q, wide = _checks.arguments(q=(q, "quaternion"), inertia=(inertia, "inertia"))
-    inertia = _shared(inertia, wide)
+    q, inertia = _checks.arguments(q=(q, "quaternion"), inertia=(validated(inertia), "inertia"), shared=("inertia",))
     return _arrays.compiled_rows(_mass_matrix, (1, 2), q, inertia)
 
 
@@ -385,9 +371,9 @@ def norm_constraint_multiplier(
     ``lambda = 4 q^T Qdot diag(0, I) Qdot^T q = w_b . I w_b``: twice the
     rotational kinetic energy.
     """
-    inertia = validated(inertia)
-    q, qdot, wide = _checks.arguments(q=(q, "quaternion"), qdot=(qdot, "quaternion"), inertia=(inertia, "inertia"))
-    inertia = _shared(inertia, wide)
+    q, qdot, inertia = _checks.arguments(
+        q=(q, "quaternion"), qdot=(qdot, "quaternion"), inertia=(validated(inertia), "inertia"), shared=("inertia",)
+    )
     return _arrays.compiled_rows(_norm_constraint_multiplier, (1, 1, 2), q, qdot, inertia)
 
 

@@ -106,7 +106,9 @@ def invariants(
     (``|momentum_body|`` too); ``norm_error`` is 0 for an exact unit-norm integrator.
     """
     inertia = validated(inertia)
-    q, omega, inertia = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"), inertia=(inertia, "inertia"))
+    q, omega, inertia = _checks.arguments(
+        q=(q, "quaternion"), omega=(omega, "vector"), inertia=(inertia, "inertia"), shared=("inertia",)
+    )
     return _arrays.compiled_rows(_invariants, (1, 1, 2), q, omega, inertia)
 
 

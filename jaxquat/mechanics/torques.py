@@ -68,11 +68,15 @@ def gravity_gradient_torque(
     mu = _checks.scalar_like(mu, "mu")
     if mu.ndim == 0 and mu.weak_type:  # a Python number: used as it is (a weak scalar takes the others' dtype)
         q, r, inertia = _checks.arguments(
-            q=(q, "quaternion"), position=(position, "vector"), inertia=(inertia, "inertia")
+            q=(q, "quaternion"), position=(position, "vector"), inertia=(inertia, "inertia"), shared=("inertia",)
         )
     else:
         q, r, inertia, mu = _checks.arguments(
-            q=(q, "quaternion"), position=(position, "vector"), inertia=(inertia, "inertia"), mu=(mu, "scalar")
+            q=(q, "quaternion"),
+            position=(position, "vector"),
+            inertia=(inertia, "inertia"),
+            mu=(mu, "scalar"),
+            shared=("inertia",),
         )
     return _arrays.compiled_rows(_gravity_gradient_torque, (1, 1, 2, 0), q, r, inertia, mu)
 
