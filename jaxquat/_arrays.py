@@ -181,12 +181,12 @@ def assemble(*c: Array) -> Array:
     (:func:`jaxquat._fusion.one_loop`) into arrays of their own and then stacked: a second pass,
     and temporaries that glibc's allocator mapped afresh at many calls (``docs/benchmarks.md``,
     session 62, has the figures). Elsewhere (GPU, TPU) a plain stack."""
-    c = jnp.broadcast_arrays(*c)
+    parts = jnp.broadcast_arrays(*c)
     if _trig.in_kernel():
-        return jnp.stack(c, axis=-1)
-    dtype = jnp.result_type(*c)
+        return jnp.stack(parts, axis=-1)
+    dtype = jnp.result_type(*parts)
     return _trig.on_cpu(
-        lambda *c: _assemble_p.bind(*c), lambda *c: jnp.stack(c, axis=-1), *(x.astype(dtype) for x in c)
+        lambda *p: _assemble_p.bind(*p), lambda *p: jnp.stack(p, axis=-1), *(x.astype(dtype) for x in parts)
     )
 
 
