@@ -74,7 +74,7 @@ def rotate_inertia(
 
     ``rotate_inertia(conjugate(q), I0)`` goes back. Assumes ``|q| = 1``.
     """
-    q, inertia = _checks.arguments(q=(q, "quaternion"), inertia=(inertia, "inertia"))
+    q, inertia = _checks.arguments(q=(q, "quaternion"), inertia=(inertia, "inertia"), shared=("inertia",))
     return _arrays.compiled_rows(_rotate_inertia, (1, 2), q, inertia)
 
 
