@@ -590,7 +590,6 @@ def test_components_tangents_are_a_split_and_their_cotangents_products_on_cpu(mo
 
     for op in ("stablehlo.dot_general", "stablehlo.reduce", "stablehlo.concatenate"):
         assert count(lambda x: jax.jvp(f, (x,), (x,))[1], op) == 0, op
-    assert count(lambda x: jax.jvp(f, (x,), (x,))[1], "stablehlo.multiply") >= 3 + 3  # the products
     assert count(jax.grad(lambda x: jnp.sum(f(x) * x)), "stablehlo.dot_general") == 3
     monkeypatch.setattr(_trig, "_cpu", lambda: False)
     assert count(jax.grad(lambda x: jnp.sum(f(x) * x)), "stablehlo.dot_general") == 0
