@@ -185,9 +185,7 @@ def assemble(*c: Array) -> Array:
     if _trig.in_kernel():
         return jnp.stack(parts, axis=-1)
     dtype = jnp.result_type(*parts)
-    return _trig.on_cpu(
-        lambda *p: _assemble_p.bind(*p), lambda *p: jnp.stack(p, axis=-1), *(x.astype(dtype) for x in parts)
-    )
+    return _trig.on_cpu(_assemble_p.bind, lambda *p: jnp.stack(p, axis=-1), *(x.astype(dtype) for x in parts))
 
 
 _assemble_p = Primitive("jaxquat_assemble")
