@@ -9,6 +9,7 @@ module fixtures and kept to few intervals."""
 from __future__ import annotations
 
 import pathlib
+import re
 
 import jax
 import jax.numpy as jnp
@@ -17,6 +18,7 @@ import pytest
 from scipy.optimize import minimize
 
 import jaxquat as jq
+from jaxquat.control.optimal_control import check_tolerance, float64_hint
 from helpers import X64, lowered_programs, run_example_in_process, run_notebook_in_process
 
 pytestmark = pytest.mark.skipif(not X64, reason="the interior-point method converges to 1e-9 in float64 only")
@@ -412,6 +414,38 @@ def test_minimum_energy_reaches_the_target_on_a_finer_resimulation(free_energy):
         np.testing.assert_allclose(np.asarray(r.q[k][-1]), qs[-1], atol=1e-10)
 
 
+def test_a_tolerance_finer_than_the_dtype_resolves_is_refused_before_the_solver_compiles():
+    """JAX computes in float32 unless float64 is enabled. A float32 solve stalls near a KKT error
+    of 1e-7 (this slew, measured: 7.5e-8; a minimum-time slew 2e-5), so the default tol of 1e-9
+    ran the whole budget (5-10 s, most of it compiling) and then raised ``RuntimeError`` advising
+    a smaller tol. A tol below eps / 100 of the arguments' dtype (here float32 arguments, as JAX
+    makes them with float64 off) is refused at the call, with the way to float64, before the
+    solver compiles. The failure messages of both solvers name a dtype other than float64."""
+    f32 = [np.asarray(a, np.float32) for a in (np.eye(3), Q0, QF)]
+    calls = {
+        "optimal reorientation: tol = 1e-09 is below what float32 resolves": lambda: jq.minimum_energy_reorientation(
+            *f32, 2.0, intervals=N
+        ),
+        "optimal reorientation: tol = 1e-09 is below what float32": lambda: jq.minimum_time_reorientation(
+            f32[0], np.ones(3, np.float32), *f32[1:], intervals=N
+        ),
+        "optimal reorientation: tol = 1e-19 is below what float64 resolves": lambda: jq.minimum_energy_reorientation(
+            np.eye(3), Q0, QF, 2.0, intervals=N, tol=1e-19
+        ),
+    }
+    with lowered_programs() as names:
+        for message, call in calls.items():
+            with pytest.raises(ValueError, match=re.escape(message) + r".*jax_enable_x64.*or pass a tol of at least"):
+                call()
+    assert not any("_solve" in str(n) for n in names), names
+    with pytest.raises(ValueError, match=r"1.2e-09 \(a minimum-time slew: to jaxquat.constrained_minimum_time\)"):
+        jq.minimum_time_reorientation(f32[0], np.ones(3, np.float32), *f32[1:], intervals=N)
+    check_tolerance(1.2e-9, np.float32, "solver")  # at the floors: no error
+    check_tolerance(2.3e-18, np.float64, "solver")
+    assert float64_hint(np.float64) == ""
+    assert "float32" in float64_hint(np.float32) and "jax_enable_x64" in float64_hint(np.float32)
+
+
 SUN = np.array([1.0, 1.0, 0.0]) / np.sqrt(2)
 HALF = np.deg2rad(20.0)
 RATE = 0.7
@@ -480,7 +514,6 @@ def test_constraints_cost_energy(constrained_energy, free_energy):
 def test_sun_avoidance_example(constrained_energy, tmp_path):
     """The example solves the fixture's problem (same configuration, so it reuses the compiled
     solver in this process) and reports the constraints on a 10x finer re-simulation."""
-    import re
 
     text = run_example_in_process("examples/sun_avoidance.py", "--out", str(tmp_path))
     assert "converged True" in text, text
@@ -652,7 +685,6 @@ def test_wheel_slew_example(wheel_bilimoria_wie, tmp_path):
     """The reaction-wheel star-tracker slew, least time then least fuel in 1.5 times that time
     (12 intervals: the fixture's configuration for the first), every constraint checked on a 10x
     finer re-simulation through ReactionWheelSpacecraft's vector field."""
-    import re
 
     text = run_example_in_process("examples/wheel_slew.py", "--intervals", "12", "--out", str(tmp_path))
     assert text.count("converged True") == 2, text

@@ -276,6 +276,40 @@ def check_resolution(T, q0, qf, w0, wf, intervals: int, substeps: int, widest: f
         )
 
 
+# The smallest tolerance the interior-point solvers accept, in units of the dtype's eps: 1.2e-9
+# in float32 (so not the default 1e-9), 2.2e-18 in float64. A float32 solve stalls near a KKT
+# error of 1e-7 (the suite's minimum-energy slew, 12 intervals: 7.5e-8) or above it (a
+# minimum-time slew: 2e-5).
+_TOL_EPS = 1e-2
+
+
+def check_tolerance(tol, dtype, solver: str, where: str = "") -> None:
+    """Raise before any compilation when ``tol`` is below what ``dtype`` can resolve
+    (``_TOL_EPS`` eps; a traced ``tol`` is not checked). JAX computes in float32 unless float64
+    is enabled, and a float32 solve at the default tol of 1e-9 ran its whole budget (5-10 s, most
+    of it compiling) before it raised ``RuntimeError`` without a word of the dtype. ``where``:
+    which function takes a ``tol``, when the caller does not."""
+    floor = _TOL_EPS * float(np.finfo(dtype).eps)
+    tol = _checks.concrete(tol)
+    if tol is not None and not float(tol) >= floor:
+        raise ValueError(
+            f"{solver}: tol = {float(tol):g} is below what {np.dtype(dtype).name} resolves (eps / 100 = {floor:.2g}); "
+            "these solvers are written and tested for float64: enable it before making the arrays "
+            '(jax.config.update("jax_enable_x64", True), or JAX_ENABLE_X64=1) and pass float64 arguments'
+            f", or pass a tol of at least {floor:.2g}{where}"
+        )
+
+
+def float64_hint(dtype) -> str:
+    """A sentence for a solver's failure message when ``dtype`` is not float64, else ``""``."""
+    if np.dtype(dtype) == np.float64:
+        return ""
+    return (
+        f" The arguments are {np.dtype(dtype).name}: a float32 solve stalls near a KKT error of 1e-7 or above; enable "
+        'float64 (jax.config.update("jax_enable_x64", True)) and pass float64 arguments.'
+    )
+
+
 def _check_duration(duration) -> float:
     duration = float(duration)
     if not (duration > 0 and np.isfinite(duration)):
@@ -379,6 +413,9 @@ def _run(
     ``(axes, torque_limit, momentum_limit or None, momentum0)`` or ``None``; ``model`` the
     validated user model (``controlled_model.Model``) or ``None``."""
     tol, max_iter, throw, starts, seed, init = options
+    check_tolerance(
+        tol, q0.dtype, "optimal reorientation", " (a minimum-time slew: to jaxquat.constrained_minimum_time)"
+    )
     widest = None if fractions is None else float(np.max(fractions))
     check_resolution(duration, q0, qf, w0, wf, cfg.intervals, cfg.substeps, widest)
     batch = q0.shape[:-1]
@@ -402,8 +439,9 @@ def _run(
                 "optimal reorientation: the interior-point method did not converge"
                 f" for {int(bad.sum())} of {bad.size} problems (largest KKT residual "
                 f"{float(np.max(np.asarray(out.kkt_residual)[bad])):.3g}, violation "
-                f"{float(np.max(np.asarray(out.violation)[bad])):.3g}). Try more intervals, max_iter, or a smaller "
+                f"{float(np.max(np.asarray(out.violation)[bad])):.3g}). Try more intervals, more max_iter or a larger "
                 "tol; check that the constraints admit a solution. Pass throw=False to get the last iterate."
+                + float64_hint(q0.dtype)
                 + _redundancy_hint(cfg, data, out, int(np.flatnonzero(bad.ravel())[0]))
             )
     return out
@@ -580,7 +618,9 @@ def optimal_reorientation(
         keep_in: cones of the same form it stays in.
         intervals: number of torque intervals ``N`` (ignored when ``mesh`` is given).
         substeps: RKMK4 steps per interval.
-        tol: the KKT error at which a start has converged.
+        tol: the KKT error at which a start has converged; below eps / 100 of the arguments'
+            dtype (1.2e-9 in float32, JAX's default, so the default tol there) it raises
+            ``ValueError`` before any work.
         max_iter: interior-point iterations per start.
         throw: raise ``RuntimeError`` when a problem has no converged start (else return the
             last iterate).
@@ -807,7 +847,8 @@ def minimum_energy_reorientation(
     Direct multiple shooting solved by a primal-dual interior-point method (module docstring);
     leading batch axes on ``q0``, ``qf``, ``omega0``, ``omegaf`` solve in one compiled call.
     ``q0``/``qf`` are normalised. Raises ``RuntimeError`` if a problem does not converge to ``tol``
-    (the scaled KKT error) within ``max_iter`` iterations, unless ``throw=False``. Use float64.
+    (the scaled KKT error) within ``max_iter`` iterations, unless ``throw=False``. Use float64: in
+    float32 (JAX's default) the default ``tol`` raises ``ValueError`` at the call.
 
     Starts: ``starts`` solves run side by side from start 0 (the eigenaxis guess, or ``init``, an
     earlier result on any number of intervals: its torque and trajectory resampled onto this

@@ -70,6 +70,7 @@ from .optimal_control import (
     check_grid,
     check_resolution,
     check_starts,
+    float64_hint,
     constrained_minimum_time,
     per_axis_bound,
 )
@@ -611,7 +612,7 @@ def minimum_time_reorientation(
             f"minimum_time_reorientation: no start met the terminal conditions to tol = {tol:g} "
             f"(least violation {float(np.min(viol_ref)):.3g}, time {float(t_ref_all[np.argmin(viol_ref)]):.6g}). "
             "Try more outer/inner iterations, starts or intervals, and check that the torque bound can "
-            "reach omegaf from omega0. Pass throw=False to get the least violating start."
+            "reach omegaf from omega0. Pass throw=False to get the least violating start." + float64_hint(dtype)
         )
     k = int(np.argmin(best_time)) if np.any(feasible) else int(np.argmin(viol_ref))
     xk = {key: jnp.asarray(v[k]) for key, v in x_ref.items()}
