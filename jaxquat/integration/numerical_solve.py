@@ -101,6 +101,7 @@ def solve(cfg: Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> tu
         controller = diffrax.ConstantStepSize()
     meter = diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter()
     batch = q0.shape[:-1]
+    inertia = jnp.broadcast_to(inertia, batch + inertia.shape[-2:])  # simulate passes a shared (3, 3) as it is
     per_body_field = bool(batch) and not adaptive and not isinstance(solver, AbstractSplitting)
 
     tableau = None if substeps is None else _component_tableau(solver)

@@ -150,7 +150,7 @@ def simulate(
     shared_inertia = inertia if inertia.ndim == 2 else None  # one tensor for every body
     # A shared tensor is not broadcast to the batch here: the closed form takes it as it is, and
     # the broadcast was an eager operation of its own (a first call 24 ms longer, for an array it
-    # did not use); the numerical paths broadcast it below.
+    # did not use); the numerical paths broadcast it inside their compiled program.
     q0, omega0, inertia = _checks.arguments(
         q0=(q0, "quaternion"), omega0=(omega0, "vector"), inertia=(inertia, "inertia"), shared=("inertia",)
     )
@@ -164,8 +164,6 @@ def simulate(
         # here without importing diffrax and equinox (numerical_solve's docstring).
         return _arrays.compiled(_exact_simulate, q0, omega0, tensor, ts, principal=not diagonal_given)
     from . import numerical_solve  # diffrax and equinox, on the first numerical solve
-
-    inertia = jnp.broadcast_to(inertia, q0.shape[:-1] + inertia.shape[-2:])
 
     cfg = numerical_solve.configure(
         solver,
