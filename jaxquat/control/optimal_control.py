@@ -305,8 +305,8 @@ def float64_hint(dtype) -> str:
     if np.dtype(dtype) == np.float64:
         return ""
     return (
-        f" The arguments are {np.dtype(dtype).name}: a float32 solve stalls near a KKT error of 1e-7 or above; enable "
-        'float64 (jax.config.update("jax_enable_x64", True)) and pass float64 arguments.'
+        f" The arguments are {np.dtype(dtype).name}: below float64 a solve stalls at a KKT error near 1e-7 (float32) "
+        'or above; enable float64 (jax.config.update("jax_enable_x64", True)) and pass float64 arguments.'
     )
 
 

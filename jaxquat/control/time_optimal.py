@@ -70,8 +70,8 @@ from .optimal_control import (
     check_grid,
     check_resolution,
     check_starts,
-    float64_hint,
     constrained_minimum_time,
+    float64_hint,
     per_axis_bound,
 )
 from .controlled_model import ControlledModel
