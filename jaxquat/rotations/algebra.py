@@ -168,7 +168,7 @@ def power(q: Float[ArrayLike, "*#batch 4"], t: Float[ArrayLike, "*#batch"] | flo
     (``|q^t| = |q|^t``); ``t`` broadcasts against the batch axes of ``q``.
     Smooth at the identity; not differentiable on the negative real axis (see :func:`log`).
     """
-    q, t = _checks.arguments(q=(q, "quaternion"), t=(t, "scalar"))
+    q, t = _checks.arguments(q=(q, "quaternion"), t=(t, "scalar"), shared=("q", "t"))
     return _arrays.compiled_rows(_power, (1, 0), q, t)
 
 
@@ -251,7 +251,7 @@ def rotate(q: Float[ArrayLike, "*#batch 4"], v: Float[ArrayLike, "*#batch 3"]) -
     the result is not a rotation of ``v``; normalise first). ``q`` and ``v``
     broadcast over their batch axes.
     """
-    q, v = _checks.arguments(q=(q, "quaternion"), v=(v, "vector"))
+    q, v = _checks.arguments(q=(q, "quaternion"), v=(v, "vector"), shared=("q", "v"))
     return _arrays.compiled_rows(_quaternion.rotate, (1, 1), q, v)
 
 
