@@ -42,8 +42,8 @@ def plus(
     Keeps ``|q|``: a unit ``q`` stays unit to rounding, with no renormalisation.
     """
     frame = _checks.frame(frame)
-    q, delta = _checks.arguments(q=(q, "quaternion"), delta=(delta, "vector"))
-    return _arrays.compiled_rows(_plus, (1, 1), q, delta, frame=frame)
+    q, delta = _checks.arguments(q=(q, "quaternion"), delta=(delta, "vector"), shared=("q", "delta"))
+    return _arrays.compiled_rows_broadcast(_plus, (1, 1), q, delta, frame=frame)
 
 
 def _plus(q: Array, delta: Array, frame: str) -> Array:
@@ -62,8 +62,8 @@ def minus(
     shortest answers).
     """
     frame = _checks.frame(frame)
-    q1, q0 = _checks.arguments(q1=(q1, "quaternion"), q0=(q0, "quaternion"))
-    return _arrays.compiled_rows(_minus, (1, 1), q1, q0, frame=frame)
+    q1, q0 = _checks.arguments(q1=(q1, "quaternion"), q0=(q0, "quaternion"), shared=("q1", "q0"))
+    return _arrays.compiled_rows_broadcast(_minus, (1, 1), q1, q0, frame=frame)
 
 
 def _minus(q1: Array, q0: Array, frame: str) -> Array:

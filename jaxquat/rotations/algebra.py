@@ -48,8 +48,8 @@ def multiply(p: Float[ArrayLike, "*#batch 4"], q: Float[ArrayLike, "*#batch 4"])
     first, then by ``p`` (active convention). Exact for any quaternions, unit or
     not; batch axes broadcast.
     """
-    p, q = _checks.arguments(p=(p, "quaternion"), q=(q, "quaternion"))
-    return _arrays.compiled_rows(_quaternion.multiply, (1, 1), p, q)
+    p, q = _checks.arguments(p=(p, "quaternion"), q=(q, "quaternion"), shared=("p", "q"))
+    return _arrays.compiled_rows_broadcast(_quaternion.multiply, (1, 1), p, q)
 
 
 def conjugate(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
