@@ -465,8 +465,13 @@ def compiled_rows_broadcast(fn, cores: tuple[int, ...], *arrays: Any, **static):
     program (an eager call), the array was written to memory at the batch's size first. At 10^6
     rows (float32, one core, eager, session 63, two or three processes each): ``multiply(Q, q)``
     with one ``q`` 2.2-3.7 -> 1.0-2.0 ms, ``plus(Q, delta)`` with one ``delta`` 4.5-4.7 -> 1.0-1.1
-    ms, ``minus(Q, q)`` 12.2 -> 8.5-8.7 ms; under ``jit`` and for the gradients the same programs'
-    times (``multiply``'s gradient 25-49 ms before and 30-51 ms after, in two modes per process)."""
+    ms, ``minus(Q, q)`` 12.2 -> 8.5-8.7 ms, ``from_axis_angle(axis, angles)`` 7.7-7.9 -> 5.7 ms,
+    ``qdot_from_omega(Q, w)`` 10.3-10.9 -> 9.2-9.5 ms; under ``jit`` and for the gradients the
+    same times (gradients in ``(Q, w)``, three processes each: ``generalized_force`` 15.8-16.6
+    against 15.7-16.1 ms, ``qdot_from_omega`` 15.6-16.7 against 15.7-16.7 ms, ``multiply``
+    25.6-26.2 against 25.7-26.3 ms). Used by ``multiply``, ``plus``, ``minus``,
+    ``from_axis_angle``, the kinematics' rate relations, ``generalized_force``,
+    ``torque_from_generalized_force`` and ``inertia_rate``."""
     return compiled(_flattened(fn, cores, True), *arrays, **static)
 
 

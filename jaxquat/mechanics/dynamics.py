@@ -289,8 +289,8 @@ def generalized_force(
     ``dw_b = 2 vec(q* dq)`` (unit ``q``).
     """
     frame = _checks.frame(frame)
-    q, torque = _checks.arguments(q=(q, "quaternion"), torque=(torque, "vector"))
-    return _arrays.compiled_rows(_generalized_force, (1, 1), q, torque, frame=frame)
+    q, torque = _checks.arguments(q=(q, "quaternion"), torque=(torque, "vector"), shared=("q", "torque"))
+    return _arrays.compiled_rows_broadcast(_generalized_force, (1, 1), q, torque, frame=frame)
 
 
 def _generalized_force(q: Array, torque: Array, frame: str) -> Array:
@@ -308,8 +308,8 @@ def torque_from_generalized_force(
     rotation and is discarded.
     """
     frame = _checks.frame(frame)
-    q, force = _checks.arguments(q=(q, "quaternion"), force=(force, "quaternion"))
-    return _arrays.compiled_rows(_torque_from_generalized_force, (1, 1), q, force, frame=frame)
+    q, force = _checks.arguments(q=(q, "quaternion"), force=(force, "quaternion"), shared=("q", "force"))
+    return _arrays.compiled_rows_broadcast(_torque_from_generalized_force, (1, 1), q, force, frame=frame)
 
 
 def _torque_from_generalized_force(q: Array, force: Array, frame: str) -> Array:

@@ -94,8 +94,12 @@ def inertia_rate(
     inertia_space: Float[ArrayLike, "*#batch 3 3"], omega_space: Float[ArrayLike, "*#batch 3"]
 ) -> Float[Array, "*batch 3 3"]:
     """Time derivative of the space-frame inertia of a rigid body: ``dI0/dt = hat(w) I0 - I0 hat(w)``, [C] eq. (C4)."""
-    i0, w = _checks.arguments(inertia_space=(inertia_space, "inertia"), omega_space=(omega_space, "vector"))
-    return _arrays.compiled_rows(_inertia_rate, (2, 1), i0, w)
+    i0, w = _checks.arguments(
+        inertia_space=(inertia_space, "inertia"),
+        omega_space=(omega_space, "vector"),
+        shared=("inertia_space", "omega_space"),
+    )
+    return _arrays.compiled_rows_broadcast(_inertia_rate, (2, 1), i0, w)
 
 
 def _inertia_rate(i0: Array, w: Array) -> Array:

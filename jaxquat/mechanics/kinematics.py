@@ -81,8 +81,8 @@ def qdot_from_omega(
     ``omega_from_qdot(q, qdot_from_omega(q, w)) == w`` for every non-zero ``q``.
     """
     frame = _checks.frame(frame)
-    q, omega = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"))
-    return _arrays.compiled_rows(_rates.qdot_from_omega, (1, 1), q, omega, frame=frame)
+    q, omega = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"), shared=("q", "omega"))
+    return _arrays.compiled_rows_broadcast(_rates.qdot_from_omega, (1, 1), q, omega, frame=frame)
 
 
 def omega_from_qdot(
@@ -100,8 +100,8 @@ def omega_from_qdot(
     drift. For unit ``q`` it is exactly the printed formula.
     """
     frame = _checks.frame(frame)
-    q, qdot = _checks.arguments(q=(q, "quaternion"), qdot=(qdot, "quaternion"))
-    return _arrays.compiled_rows(_rates.omega_from_qdot_by_components, (1, 1), q, qdot, frame=frame)
+    q, qdot = _checks.arguments(q=(q, "quaternion"), qdot=(qdot, "quaternion"), shared=("q", "qdot"))
+    return _arrays.compiled_rows_broadcast(_rates.omega_from_qdot_by_components, (1, 1), q, qdot, frame=frame)
 
 
 def qddot_from_alpha(
@@ -125,8 +125,12 @@ def qddot_from_alpha(
     ``alpha`` exactly and ``d^2|q|^2/dt^2 = 0`` (the norm rate is not accelerated).
     """
     frame = _checks.frame(frame)
-    q, qdot, alpha = _checks.arguments(q=(q, "quaternion"), qdot=(qdot, "quaternion"), alpha=(alpha, "vector"))
-    return _arrays.compiled_rows(_rates.qddot_from_alpha_by_components, (1, 1, 1), q, qdot, alpha, frame=frame)
+    q, qdot, alpha = _checks.arguments(
+        q=(q, "quaternion"), qdot=(qdot, "quaternion"), alpha=(alpha, "vector"), shared=("q", "qdot", "alpha")
+    )
+    return _arrays.compiled_rows_broadcast(
+        _rates.qddot_from_alpha_by_components, (1, 1, 1), q, qdot, alpha, frame=frame
+    )
 
 
 def alpha_from_qddot(
@@ -148,8 +152,12 @@ def alpha_from_qddot(
     and ``qdot q*`` in space), the angular acceleration of ``q/|q|``.
     """
     frame = _checks.frame(frame)
-    q, qdot, qddot = _checks.arguments(q=(q, "quaternion"), qdot=(qdot, "quaternion"), qddot=(qddot, "quaternion"))
-    return _arrays.compiled_rows(_rates.alpha_from_qddot_by_components, (1, 1, 1), q, qdot, qddot, frame=frame)
+    q, qdot, qddot = _checks.arguments(
+        q=(q, "quaternion"), qdot=(qdot, "quaternion"), qddot=(qddot, "quaternion"), shared=("q", "qdot", "qddot")
+    )
+    return _arrays.compiled_rows_broadcast(
+        _rates.alpha_from_qddot_by_components, (1, 1, 1), q, qdot, qddot, frame=frame
+    )
 
 
 def matrix_rate(
@@ -162,8 +170,8 @@ def matrix_rate(
     with ``A = to_matrix(q)``. Assumes ``|q| = 1`` (as :func:`jaxquat.to_matrix`).
     """
     frame = _checks.frame(frame)
-    q, omega = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"))
-    return _arrays.compiled_rows(_matrix_rate, (1, 1), q, omega, frame=frame)
+    q, omega = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"), shared=("q", "omega"))
+    return _arrays.compiled_rows_broadcast(_matrix_rate, (1, 1), q, omega, frame=frame)
 
 
 def _matrix_rate(q: Array, omega: Array, frame: str) -> Array:
@@ -184,8 +192,10 @@ def matrix_acceleration(
     ``(hat(w_s) hat(w_s) + hat(a_s)) A`` (space). Assumes ``|q| = 1``.
     """
     frame = _checks.frame(frame)
-    q, omega, alpha = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"), alpha=(alpha, "vector"))
-    return _arrays.compiled_rows(_matrix_acceleration, (1, 1, 1), q, omega, alpha, frame=frame)
+    q, omega, alpha = _checks.arguments(
+        q=(q, "quaternion"), omega=(omega, "vector"), alpha=(alpha, "vector"), shared=("q", "omega", "alpha")
+    )
+    return _arrays.compiled_rows_broadcast(_matrix_acceleration, (1, 1, 1), q, omega, alpha, frame=frame)
 
 
 def _matrix_acceleration(q: Array, omega: Array, alpha: Array, frame: str) -> Array:
