@@ -326,8 +326,9 @@ def test_an_argument_without_batch_axes_is_not_broadcast_to_the_batch():
         assert_close(grad, rows_grad.sum(axis=0), tol=10 * tol, what=f"{name} gradient")
 
 
-def test_a_product_with_one_rotation_for_a_batch_broadcasts_it_inside_its_program():
-    """``multiply``, ``plus`` and ``minus`` form their results from rows of one shape: an argument
+def test_an_argument_without_batch_axes_is_broadcast_inside_a_row_kernel_s_program():
+    """``multiply``, ``plus``, ``minus``, ``from_axis_angle``, the kinematics' rate relations, the
+    generalised forces and ``inertia_rate`` form their results from rows of one shape: an argument
     without batch axes is broadcast inside their compiled program, where XLA fuses the broadcast,
     not before it as an eager operation that wrote it to memory at the batch's size (10^6 rows,
     float32, one core, eager: ``plus(Q, delta)`` 4.5-4.7 -> 1.0-1.1 ms, ``minus(Q, q)`` 12.2 ->
@@ -338,11 +339,14 @@ def test_a_product_with_one_rotation_for_a_batch_broadcasts_it_inside_its_progra
     q = jq.random(jax.random.PRNGKey(6), (n,), DTYPE)
     d = jnp.asarray(RNG.normal(size=(n, 3)), DTYPE) * 0.3
     one_q, one_d = jq.random(jax.random.PRNGKey(7), (), DTYPE), d[0]
+    angles = jnp.linspace(0.1, 3.0, n, dtype=DTYPE)
     calls = {
         "multiply(Q, q)": (lambda a: jq.multiply(q, a), one_q),
         "multiply(q, Q)": (lambda a: jq.multiply(a, q), one_q),
         "plus(Q, delta)": (lambda a: jq.plus(q, a), one_d),
         "minus(Q, q)": (lambda a: jq.minus(q, a), one_q),
+        "qdot_from_omega(Q, w)": (lambda a: jq.qdot_from_omega(q, a), one_d),
+        "from_axis_angle(axis, T)": (lambda a: jq.from_axis_angle(a, angles), one_d / jnp.linalg.norm(one_d)),
     }
     tol = 1e-12 if X64 else 2e-5
     for name, (call, one) in calls.items():
