@@ -248,8 +248,9 @@ def broadcast_batch(
     their arguments (session 63; one vector, rotation, exponent or start for a batch, 10^6 rows,
     float32, one core): ``rotate(Q, v)`` eager 4.8-6.2 -> 2.7 ms, its gradient 16.5-17.1 -> 7.9-9.6
     ms; ``angle_between(Q, q)`` eager 8.7-9.2 -> 4.1-5.6 ms, gradient 107-114 -> 53-78 ms; under
-    ``jit`` the values' times are unchanged (XLA fuses the broadcast there). Not ``multiply``,
-    ``plus`` or ``minus``: their kernel forms the product from rows of equal shape.
+    ``jit`` the values' times are unchanged (XLA fuses the broadcast there). A kernel formed from
+    rows of one shape (``multiply``, ``plus``, ``minus``, the kinematics, ...) names its arguments
+    too, and has them broadcast inside its compiled program (``_arrays.compiled_rows_broadcast``).
     """
     batches = [a.shape[: a.ndim - c] for a, c in zip(arrays, core_ndims)]
     try:
