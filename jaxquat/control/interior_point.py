@@ -307,7 +307,9 @@ def solve_shooting(
         U: initial guess of the controls, ``(N, nu)``, one per shooting interval.
         p: initial guess of the parameters ``(np,)`` shared by all stages (e.g. a free final time).
         data: any pytree passed to every problem function unchanged (boundary states, bounds).
-        tol: the scaled KKT error at which the solve stops.
+        tol: the scaled KKT error at which the solve stops. Not checked against the dtype here (the
+            public solvers refuse one below eps / 100): a float32 solve stalls near 1e-7 and
+            returns ``converged=False`` at the default.
         max_iter: the most interior-point iterations.
         mu0: the initial barrier parameter (small for a warm start near the solution; a traced
             scalar too, as the solvers pass it, so that cold and warm starts share a program).
