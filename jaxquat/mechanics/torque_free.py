@@ -443,25 +443,11 @@ def euler_poinsot(
     """
     moments = _validated_moments(moments)
     q0, omega0, moments, t = _checks.arguments(
-        q0=(q0, "quaternion"),
-        omega0=(omega0, "vector"),
-        moments=(moments, "vector"),
-        t=(t, "scalar"),
-        shared=("q0", "omega0", "moments", "t"),
+        q0=(q0, "quaternion"), omega0=(omega0, "vector"), moments=(moments, "vector"), t=(t, "scalar")
     )
-    return _arrays.compiled(_euler_poinsot, q0, omega0, moments, t)
-
-
-def _euler_poinsot(q0: Array, omega0: Array, moments: Array, t: Array) -> tuple[Array, Array]:
-    """:func:`euler_poinsot`'s compiled body: the arguments broadcast to one batch, :func:`propagate`
-    in the working dtype (:func:`jaxquat._checks.working_dtype`), the results in the arguments'.
-    Broadcast and cast inside the program, not before it: an eager first call of 100 bodies with
-    one set of moments and one time compiled three single operations before ``propagate``."""
-    batch = jnp.broadcast_shapes(q0.shape[:-1], omega0.shape[:-1], moments.shape[:-1], t.shape)
     dtype = q0.dtype
     work = _checks.working_dtype(dtype)
-    q0, omega0, moments = (jnp.broadcast_to(x, batch + x.shape[-1:]).astype(work) for x in (q0, omega0, moments))
-    q, w = propagate(q0, omega0, moments, jnp.broadcast_to(t, batch).astype(work))
+    q, w = _arrays.compiled(propagate, *(x.astype(work) for x in (q0, omega0, moments, t)))
     return q.astype(dtype), w.astype(dtype)
 
 
