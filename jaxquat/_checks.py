@@ -197,7 +197,7 @@ _KINDS = {
 }
 
 
-def arguments(*, shared: tuple[str, ...] = (), **named: tuple[Any, str]) -> list[Array]:
+def arguments(*, shared: tuple[str, ...] | bool = (), **named: tuple[Any, str]) -> list[Array]:
     """Validate a function's array arguments and broadcast their batch axes: the one
     validate-and-broadcast step of every public function.
 
@@ -212,16 +212,17 @@ def arguments(*, shared: tuple[str, ...] = (), **named: tuple[Any, str]) -> list
     (one inertia tensor for a batch of bodies) is returned as it is, in the common dtype, not
     broadcast: a kernel that reads its entries as scalars broadcasts them inside its loop, where
     the broadcast array was written to memory and read back (:func:`broadcast_batch`).
+    ``shared=True`` names every argument.
     """
     arrays, cores = [], []
     for name, (value, kind) in named.items():
         check, core = _KINDS[kind]
         arrays.append(check(value, name))
         cores.append(core)
-    return broadcast_batch(arrays, list(named), cores, shared)
+    return broadcast_batch(arrays, list(named), cores, tuple(named) if shared is True else shared or ())
 
 
-def optional_arguments(*, shared: tuple[str, ...] = (), **named: tuple[Any, str]) -> list[Array | None]:
+def optional_arguments(*, shared: tuple[str, ...] | bool = (), **named: tuple[Any, str]) -> list[Array | None]:
     """:func:`arguments` where an argument whose kind ends in ``?`` (``"vector?"``) may be ``None``
     (an omitted optional one): it is returned as ``None`` and takes no part in the broadcast, so a
     compiled body forms the default (a zero torque, a body-fixed point's zero velocity) inside its

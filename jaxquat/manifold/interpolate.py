@@ -27,7 +27,7 @@ def slerp(
     gives ``p``, ``t = 1`` gives ``q'``; ``t`` outside [0, 1] extrapolates.
     Assumes unit ``p`` and ``q``. ``p``, ``q`` and ``t`` broadcast over batch axes.
     """
-    p, q, t = _checks.arguments(p=(p, "quaternion"), q=(q, "quaternion"), t=(t, "scalar"), shared=("p", "q", "t"))
+    p, q, t = _checks.arguments(p=(p, "quaternion"), q=(q, "quaternion"), t=(t, "scalar"), shared=True)
     return _arrays.compiled_rows(_rotation.slerp, (1, 1, 0), p, q, t)
 
 

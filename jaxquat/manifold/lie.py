@@ -42,7 +42,7 @@ def plus(
     Keeps ``|q|``: a unit ``q`` stays unit to rounding, with no renormalisation.
     """
     frame = _checks.frame(frame)
-    q, delta = _checks.arguments(q=(q, "quaternion"), delta=(delta, "vector"), shared=("q", "delta"))
+    q, delta = _checks.arguments(q=(q, "quaternion"), delta=(delta, "vector"), shared=True)
     return _arrays.compiled_rows_broadcast(_plus, (1, 1), q, delta, frame=frame)
 
 
@@ -62,7 +62,7 @@ def minus(
     shortest answers).
     """
     frame = _checks.frame(frame)
-    q1, q0 = _checks.arguments(q1=(q1, "quaternion"), q0=(q0, "quaternion"), shared=("q1", "q0"))
+    q1, q0 = _checks.arguments(q1=(q1, "quaternion"), q0=(q0, "quaternion"), shared=True)
     return _arrays.compiled_rows_broadcast(_minus, (1, 1), q1, q0, frame=frame)
 
 

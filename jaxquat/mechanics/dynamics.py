@@ -289,7 +289,7 @@ def generalized_force(
     ``dw_b = 2 vec(q* dq)`` (unit ``q``).
     """
     frame = _checks.frame(frame)
-    q, torque = _checks.arguments(q=(q, "quaternion"), torque=(torque, "vector"), shared=("q", "torque"))
+    q, torque = _checks.arguments(q=(q, "quaternion"), torque=(torque, "vector"), shared=True)
     return _arrays.compiled_rows_broadcast(_generalized_force, (1, 1), q, torque, frame=frame)
 
 
@@ -308,7 +308,7 @@ def torque_from_generalized_force(
     rotation and is discarded.
     """
     frame = _checks.frame(frame)
-    q, force = _checks.arguments(q=(q, "quaternion"), force=(force, "quaternion"), shared=("q", "force"))
+    q, force = _checks.arguments(q=(q, "quaternion"), force=(force, "quaternion"), shared=True)
     return _arrays.compiled_rows_broadcast(_torque_from_generalized_force, (1, 1), q, force, frame=frame)
 
 

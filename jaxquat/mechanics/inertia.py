@@ -97,7 +97,7 @@ def inertia_rate(
     i0, w = _checks.arguments(
         inertia_space=(inertia_space, "inertia"),
         omega_space=(omega_space, "vector"),
-        shared=("inertia_space", "omega_space"),
+        shared=True,
     )
     return _arrays.compiled_rows_broadcast(_inertia_rate, (2, 1), i0, w)
 

@@ -81,7 +81,7 @@ def qdot_from_omega(
     ``omega_from_qdot(q, qdot_from_omega(q, w)) == w`` for every non-zero ``q``.
     """
     frame = _checks.frame(frame)
-    q, omega = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"), shared=("q", "omega"))
+    q, omega = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"), shared=True)
     return _arrays.compiled_rows_broadcast(_rates.qdot_from_omega, (1, 1), q, omega, frame=frame)
 
 
@@ -100,7 +100,7 @@ def omega_from_qdot(
     drift. For unit ``q`` it is exactly the printed formula.
     """
     frame = _checks.frame(frame)
-    q, qdot = _checks.arguments(q=(q, "quaternion"), qdot=(qdot, "quaternion"), shared=("q", "qdot"))
+    q, qdot = _checks.arguments(q=(q, "quaternion"), qdot=(qdot, "quaternion"), shared=True)
     return _arrays.compiled_rows_broadcast(_rates.omega_from_qdot_by_components, (1, 1), q, qdot, frame=frame)
 
 
@@ -126,7 +126,7 @@ def qddot_from_alpha(
     """
     frame = _checks.frame(frame)
     q, qdot, alpha = _checks.arguments(
-        q=(q, "quaternion"), qdot=(qdot, "quaternion"), alpha=(alpha, "vector"), shared=("q", "qdot", "alpha")
+        q=(q, "quaternion"), qdot=(qdot, "quaternion"), alpha=(alpha, "vector"), shared=True
     )
     return _arrays.compiled_rows_broadcast(
         _rates.qddot_from_alpha_by_components, (1, 1, 1), q, qdot, alpha, frame=frame
@@ -153,7 +153,7 @@ def alpha_from_qddot(
     """
     frame = _checks.frame(frame)
     q, qdot, qddot = _checks.arguments(
-        q=(q, "quaternion"), qdot=(qdot, "quaternion"), qddot=(qddot, "quaternion"), shared=("q", "qdot", "qddot")
+        q=(q, "quaternion"), qdot=(qdot, "quaternion"), qddot=(qddot, "quaternion"), shared=True
     )
     return _arrays.compiled_rows_broadcast(
         _rates.alpha_from_qddot_by_components, (1, 1, 1), q, qdot, qddot, frame=frame
@@ -170,7 +170,7 @@ def matrix_rate(
     with ``A = to_matrix(q)``. Assumes ``|q| = 1`` (as :func:`jaxquat.to_matrix`).
     """
     frame = _checks.frame(frame)
-    q, omega = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"), shared=("q", "omega"))
+    q, omega = _checks.arguments(q=(q, "quaternion"), omega=(omega, "vector"), shared=True)
     return _arrays.compiled_rows_broadcast(_matrix_rate, (1, 1), q, omega, frame=frame)
 
 
@@ -193,7 +193,7 @@ def matrix_acceleration(
     """
     frame = _checks.frame(frame)
     q, omega, alpha = _checks.arguments(
-        q=(q, "quaternion"), omega=(omega, "vector"), alpha=(alpha, "vector"), shared=("q", "omega", "alpha")
+        q=(q, "quaternion"), omega=(omega, "vector"), alpha=(alpha, "vector"), shared=True
     )
     return _arrays.compiled_rows_broadcast(_matrix_acceleration, (1, 1, 1), q, omega, alpha, frame=frame)
 

@@ -48,7 +48,7 @@ def multiply(p: Float[ArrayLike, "*#batch 4"], q: Float[ArrayLike, "*#batch 4"])
     first, then by ``p`` (active convention). Exact for any quaternions, unit or
     not; batch axes broadcast.
     """
-    p, q = _checks.arguments(p=(p, "quaternion"), q=(q, "quaternion"), shared=("p", "q"))
+    p, q = _checks.arguments(p=(p, "quaternion"), q=(q, "quaternion"), shared=True)
     return _arrays.compiled_rows_broadcast(_quaternion.multiply, (1, 1), p, q)
 
 
@@ -168,7 +168,7 @@ def power(q: Float[ArrayLike, "*#batch 4"], t: Float[ArrayLike, "*#batch"] | flo
     (``|q^t| = |q|^t``); ``t`` broadcasts against the batch axes of ``q``.
     Smooth at the identity; not differentiable on the negative real axis (see :func:`log`).
     """
-    q, t = _checks.arguments(q=(q, "quaternion"), t=(t, "scalar"), shared=("q", "t"))
+    q, t = _checks.arguments(q=(q, "quaternion"), t=(t, "scalar"), shared=True)
     return _arrays.compiled_rows(_power, (1, 0), q, t)
 
 
@@ -251,7 +251,7 @@ def rotate(q: Float[ArrayLike, "*#batch 4"], v: Float[ArrayLike, "*#batch 3"]) -
     the result is not a rotation of ``v``; normalise first). ``q`` and ``v``
     broadcast over their batch axes.
     """
-    q, v = _checks.arguments(q=(q, "quaternion"), v=(v, "vector"), shared=("q", "v"))
+    q, v = _checks.arguments(q=(q, "quaternion"), v=(v, "vector"), shared=True)
     return _arrays.compiled_rows(_quaternion.rotate, (1, 1), q, v)
 
 

@@ -136,7 +136,7 @@ def from_axis_angle(
     is no rotation to return; under ``jit`` as well, so the rest of a batch is kept).
     ``axis`` and ``angle`` broadcast over their batch axes.
     """
-    axis, angle = _checks.arguments(axis=(axis, "vector"), angle=(angle, "scalar"), shared=("axis", "angle"))
+    axis, angle = _checks.arguments(axis=(axis, "vector"), angle=(angle, "scalar"), shared=True)
     return _arrays.compiled_rows_broadcast(_from_axis_angle, (1, 0), axis, angle)
 
 

@@ -40,7 +40,7 @@ def angle_between(p: Float[ArrayLike, "*#batch 4"], q: Float[ArrayLike, "*#batch
 
     Symmetric in ``p`` and ``q`` and invariant to the sign of either. Assumes unit inputs.
     """
-    p, q = _checks.arguments(p=(p, "quaternion"), q=(q, "quaternion"), shared=("p", "q"))
+    p, q = _checks.arguments(p=(p, "quaternion"), q=(q, "quaternion"), shared=True)
     return _arrays.compiled_rows(_angle_between, (1, 1), p, q)
 
 
