@@ -315,15 +315,9 @@ def test_an_argument_without_batch_axes_is_not_broadcast_to_the_batch():
         "slerp(p, Q, T)": (lambda a: jq.slerp(a, q, t), one_q),
     }
     broadcast = re.compile(rf"broadcast_in_dim %arg0,[^\n]*-> tensor<{n}x")
-    tol = 1e-12 if X64 else 2e-5
     for name, (call, one) in calls.items():
-        both = jax.jit(lambda a, call=call: (call(a), jax.grad(lambda b: jnp.sum(jnp.sin(call(b))))(a)))
         assert not broadcast.search(jax.jit(call).lower(one).as_text()), name  # lowered, not compiled
-        value, grad = both(one)
-        # The argument repeated for every row: the same function, row by row.
-        rows_value, rows_grad = both(jnp.broadcast_to(one, (n,) + one.shape))
-        assert_close(value, rows_value, tol=tol, what=name)
-        assert_close(grad, rows_grad.sum(axis=0), tol=10 * tol, what=f"{name} gradient")
+        _assert_as_if_repeated(name, call, one, n)
 
 
 def test_an_argument_without_batch_axes_is_broadcast_inside_a_row_kernel_s_program():
@@ -348,16 +342,22 @@ def test_an_argument_without_batch_axes_is_broadcast_inside_a_row_kernel_s_progr
         "qdot_from_omega(Q, w)": (lambda a: jq.qdot_from_omega(q, a), one_d),
         "from_axis_angle(axis, T)": (lambda a: jq.from_axis_angle(a, angles), one_d / jnp.linalg.norm(one_d)),
     }
-    tol = 1e-12 if X64 else 2e-5
     for name, (call, one) in calls.items():
         with lowered_programs() as names:
             call(one)
         assert not any("broadcast" in str(x) for x in names), (name, names)
-        both = jax.jit(lambda a, call=call: (call(a), jax.grad(lambda b: jnp.sum(jnp.sin(call(b))))(a)))
-        value, grad = both(one)
-        rows_value, rows_grad = both(jnp.broadcast_to(one, (n,) + one.shape))
-        assert_close(value, rows_value, tol=tol, what=name)
-        assert_close(grad, rows_grad.sum(axis=0), tol=10 * tol, what=f"{name} gradient")
+        _assert_as_if_repeated(name, call, one, n)
+
+
+def _assert_as_if_repeated(name, call, one, n):
+    """``call(one)`` and its gradient in ``one`` are those of ``one`` repeated for each of ``n`` rows
+    (the same function, row by row), the gradient summed over the rows."""
+    tol = 1e-12 if X64 else 2e-5
+    both = jax.jit(lambda a: (call(a), jax.grad(lambda b: jnp.sum(jnp.sin(call(b))))(a)))
+    value, grad = both(one)
+    rows_value, rows_grad = both(jnp.broadcast_to(one, (n,) + one.shape))
+    assert_close(value, rows_value, tol=tol, what=name)
+    assert_close(grad, rows_grad.sum(axis=0), tol=10 * tol, what=f"{name} gradient")
 
 
 @pytest.mark.skipif(X64, reason="half precision does not depend on the x64 flag: checked once, in the float32 pass")
