@@ -484,20 +484,20 @@ def _flattened(fn, cores: tuple[int, ...], broadcast: bool = False):
     def flat(*arrays, **static):
         batches = [a.shape[: a.ndim - c] for a, c in zip(arrays, cores) if a is not None]
         batch = jnp.broadcast_shapes(*batches) if batches else ()
+
+        def full(a, c):  # at the batch's shape
+            return jnp.broadcast_to(a, batch + a.shape[a.ndim - c :])
+
         if len(batch) < 2:
             if broadcast:
-                arrays = tuple(
-                    a if a is None else jnp.broadcast_to(a, batch + a.shape[a.ndim - c :])
-                    for a, c in zip(arrays, cores)
-                )
+                arrays = tuple(a if a is None else full(a, c) for a, c in zip(arrays, cores))
             return fn(*arrays, **static)
         n = functools.reduce(operator.mul, batch, 1)
 
         def rows(a, c):
             if a is None or (a.ndim == c and not broadcast):
                 return a
-            core = a.shape[a.ndim - c :]
-            return jnp.broadcast_to(a, batch + core).reshape((n,) + core)
+            return full(a, c).reshape((n,) + a.shape[a.ndim - c :])
 
         out = fn(*(rows(a, c) for a, c in zip(arrays, cores)), **static)
         return jax.tree.map(lambda x: x.reshape(batch + x.shape[1:]), out)
