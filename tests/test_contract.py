@@ -299,14 +299,13 @@ def test_an_argument_without_batch_axes_is_not_broadcast_to_the_batch():
     ``angle_between(Q, q)`` eager 8.7-9.2 -> 4.1-5.6 ms, gradient 107-114 -> 53-78 ms). No value
     program broadcasts the argument to the batch (``slerp``'s gradient kernel does, inside its
     program); the values are those of the argument repeated for every row, and the argument's
-    gradient is the sum of theirs. (``multiply``, ``plus`` and ``minus`` still broadcast: their
-    kernel forms the product from rows.)"""
+    gradient is the sum of theirs. (``multiply``, ``plus``, ``minus`` and the other kernels formed
+    from rows have it broadcast inside their program: the next test.)"""
     n = 7
     q = jq.random(jax.random.PRNGKey(5), (n,), DTYPE)
     v = jnp.asarray(RNG.normal(size=(n, 3)), DTYPE)
     t = jnp.asarray(RNG.uniform(0.1, 0.9, size=n), DTYPE)
-    one_q, one_v = q[0] * S + q[1] * S, v[0]  # not unit: the kernels take it as given
-    one_q = one_q / jnp.linalg.norm(one_q)
+    one_q, one_v = jq.random(jax.random.PRNGKey(8), (), DTYPE), v[0]
     calls = {  # name: (function of the shared argument, the shared argument)
         "rotate(Q, v)": (lambda a: jq.rotate(q, a), one_v),
         "rotate(q, V)": (lambda a: jq.rotate(a, v), one_q),
