@@ -37,7 +37,9 @@ def machine() -> str:
     except OSError:
         pass
     dev = jax.devices()[0]
-    return f"{dev.platform.upper()} `{dev.device_kind}`, {os.cpu_count()} cores ({cpu}); jax {jax.__version__}"
+    tunables = os.environ.get("GLIBC_TUNABLES")
+    env = f"; `GLIBC_TUNABLES={tunables}`" if tunables else ""
+    return f"{dev.platform.upper()} `{dev.device_kind}`, {os.cpu_count()} cores ({cpu}); jax {jax.__version__}{env}"
 
 
 def write_section(path: str, name: str, markdown: str) -> None:
