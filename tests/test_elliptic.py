@@ -138,6 +138,41 @@ def test_incomplete_integrals_unwrap():
     assert_close(pi, 2 * j * pi_ref(np.pi / 2) + pi_ref(r), tol=TOL * 20, what="Pi")
 
 
+_legendre_apart = jax.jit(lambda a, b: (el.legendre(*a), el.legendre(*b)))
+_legendre_joint = jax.jit(lambda a, b: tuple(el.legendre_joint(a, b)))
+
+
+def test_legendre_of_several_sets_in_one_loop_is_legendre_of_each():
+    """``legendre_joint`` (one Carlson loop for sets of different shapes, as the torque-free flow
+    takes its per-body and per-time integrals) gives each set's ``legendre``, values and
+    gradients, in the set's own shape (a ``(2, 5)`` set with a broadcast ``n`` and a ``(7, 5)``
+    one)."""
+    rng = np.random.default_rng(11)
+    m = rng.uniform(0, 0.95, 5)
+
+    def args(rows):
+        phi = rng.uniform(-1.5, 1.5, (rows, 5))
+        s, c = np.sin(phi), np.cos(phi)
+        return tuple(jnp.asarray(v, DTYPE) for v in (s, c * c, 1 - m * s * s, -rng.uniform(0, 3, (rows, 5))))
+
+    a, b = args(2), args(7)
+    a = (*a[:3], a[3][:1])  # n broadcast over the set, as the flow's -nu[None]
+    joint, apart = _legendre_joint(a, b), _legendre_apart(a, b)
+    assert [x.shape for pair in joint for x in pair] == [(2, 5), (2, 5), (7, 5), (7, 5)]
+    for got, want in zip(jax.tree.leaves(joint), jax.tree.leaves(apart)):
+        assert_close(got, want, tol=TOL, what="legendre_joint")
+
+    def total(fn):
+        return lambda a, b: sum(jnp.sum(x * (1 + i)) for i, x in enumerate(jax.tree.leaves(fn(a, b))))
+
+    grads = [
+        jax.jit(jax.grad(total(fn), argnums=(0, 1)))(a, b)
+        for fn in (el.legendre_joint, lambda a, b: (el.legendre(*a), el.legendre(*b)))
+    ]
+    for got, want in zip(*(jax.tree.leaves(g) for g in grads)):
+        assert_close(got, want, tol=TOL, what="legendre_joint's gradient")
+
+
 def test_derivative_in_m_at_and_near_one():
     """d/dm of sn, cn, dn at m = 1 (and 1 - 1e-12 in float64), both modes, against the
     m -> 1- limit from A&S 16.15: d sn/dm = -(sinh cosh - u) sech^2 / 4, d cn/dm =

@@ -349,6 +349,24 @@ def legendre(s: Array, x: Array, y: Array, n: Array) -> tuple[Array, Array]:
     return f, f + n / 3 * s * (s * s) * r_j
 
 
+def legendre_joint(*args: tuple[Array, Array, Array, Array]) -> list[tuple[Array, Array]]:
+    """:func:`legendre` of several sets of arguments ``(s, x, y, n)`` (each set broadcast to one
+    shape of its own) from one Carlson loop, their elements laid side by side on one axis.
+
+    Why: each loop is compiled on its own, and its derivatives too. The torque-free flow needs the
+    integrals at its times and, per body, at time 0 and complete; two loops of 1000 x 101 and
+    2 x 1000 elements compiled in 0.53-0.59 s and their gradient in 1.94-2.19 s, the same work as
+    one loop in 0.43-0.45 s and 1.08-1.38 s (float64, one core of a 2-core AMD EPYC)."""
+    groups = [jnp.broadcast_arrays(*a) for a in args]
+    f, pi = legendre(*(jnp.concatenate([g[i].reshape(-1) for g in groups]) for i in range(4)))
+    out, start = [], 0
+    for g in groups:
+        size, shape = g[0].size, g[0].shape
+        out.append((f[start : start + size].reshape(shape), pi[start : start + size].reshape(shape)))
+        start += size
+    return out
+
+
 def partial_y(c: Array, m: Array, mc: Array) -> Array:
     """``1 - m sin^2 r`` formed as ``mc + m cos^2 r`` (no cancellation near ``m = 1``)."""
     return jnp.maximum(mc + m * c * c, 0.0)

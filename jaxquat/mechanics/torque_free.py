@@ -55,7 +55,7 @@ from .elliptic import (
     am_given,
     complete_rd,
     complete_y,
-    legendre,
+    legendre_joint,
     partial_y,
     quarter_period,
     reduced_amplitude,
@@ -175,11 +175,9 @@ class _Motion(NamedTuple):
     kc: Array
     ia: Array
     ic: Array
-    pi_full: Array  # Pi(-nu | m), complete
-    pi0: Array  # Pi(-nu; am u_0 | m)
+    h0: Array  # the half turns of the amplitude at time 0 (reduced_amplitude)
     rd_complete: Array
     chi0: Array
-    u0: Array  # only rounded: no derivatives
     e: tuple[Array, ...]  # the fixed body axis +-e_a, by components (as the five below)
     moments: tuple[Array, ...]
     ea: tuple[Array, ...]
@@ -187,6 +185,8 @@ class _Motion(NamedTuple):
     ec: tuple[Array, ...]
     left: tuple[Array, ...]  # q_0 p_0*, a quaternion
     agm: tuple[tuple[Array, Array, Array], Array]
+    # legendre's (s, x, y) at the amplitude at time 0 and for the complete integrals, each (2,) + B
+    start: tuple[Array, Array, Array]
 
     def at_times(self, t: Array) -> _Motion:
         """Each field broadcast to the shape of the times ``t`` (``batch + T``), once: reverse mode
@@ -197,23 +197,29 @@ class _Motion(NamedTuple):
         7.44-7.71 s in float32 and 8.11-8.17 -> 7.59-7.73 s in float64, later calls 97-105 -> 94-101
         ms and 248-250 -> 237-238 ms (one pinned core of a 2-core Intel Xeon, session 60)."""
         extra = (None,) * (t.ndim - self.m.ndim)
-        flat, tree = jax.tree.flatten(self._replace(agm=None))  # pyright: ignore[reportArgumentType]
-        if len(extra) == 1 and t.shape[:-1] == self.m.shape:  # one axis of times: the cotangents in one loop
-            spread = list(_fusion.spread(flat, t.shape[-1]))
-        else:
-            spread = [jnp.broadcast_to(x[(..., *extra)], t.shape) for x in flat]
+        flat, tree = jax.tree.flatten(self._replace(agm=None, start=None))  # pyright: ignore[reportArgumentType]
         agm = (tuple(x[(..., *extra)] for x in self.agm[0]), self.agm[1][(..., *extra)])
-        return jax.tree.unflatten(tree, spread)._replace(agm=agm)
+        return jax.tree.unflatten(tree, _to_times(flat, t))._replace(agm=agm, start=self.start)
+
+
+def _to_times(flat: list[Array], t: Array) -> list[Array]:
+    """Per-body arrays (all of one shape ``B``) broadcast to the times' shape ``B + T``; with one axis
+    of times as one :func:`jaxquat._fusion.spread` (:meth:`_Motion.at_times`)."""
+    extra = (None,) * (t.ndim - flat[0].ndim)
+    if len(extra) == 1 and t.shape[:-1] == flat[0].shape:  # one axis of times: the cotangents in one loop
+        return list(_fusion.spread(flat, t.shape[-1]))
+    return [jnp.broadcast_to(x[(..., *extra)], t.shape) for x in flat]
 
 
 def _motion(q0: Array, w0: list[Array], moments: list[Array], a: Array, b: Array, c: Array) -> _Motion:
     """The per-body part of the elliptic solution (states that are not steady rotations; see the
-    module docstring): the parameters, the AGM of ``m``, the amplitude and the precession
-    integrals at time 0, the complete integrals and the constant left factor of ``q(t)``.
-    ``w0`` and ``moments`` by components.
+    module docstring): the parameters, the AGM of ``m``, the amplitude at time 0, the arguments of
+    the integrals at time 0 and of the complete ones (``start``: :func:`_state_at` evaluates them
+    in the Carlson loop of its times) and the constant left factor of ``q(t)``. ``w0`` and
+    ``moments`` by components.
 
-    Its scalars are formed in two loops over the bodies (``_fusion``), one before the loops of
-    the AGM and Carlson's integrals and one after them: XLA's CPU compiler otherwise gives each
+    Its scalars are formed in one loop over the bodies (``_fusion``), and the integrals' results
+    in another (:func:`_state_at`): XLA's CPU compiler otherwise gives each
     per-body array a kernel of its own that evaluates the roles and the parameters again (61 of
     ``simulate``'s 126 kernels on its default path, where each kernel costs about 13 ms of compiling
     even when it is small)."""
@@ -242,7 +248,8 @@ def _motion(q0: Array, w0: list[Array], moments: list[Array], a: Array, b: Array
     # The amplitude at 0 as (sn, cn) from the rates (A_c cn = w_c, A_b sn = w_b_hat), not as an angle:
     # near a spin about the middle axis cn is tiny and an angle near pi/2 would lose eps / cn in the
     # integrals. One Carlson evaluation gives F and Pi at it and the complete integrals (K and
-    # Pi(-nu | m)); the complete ones are used for every time at which the amplitude has turned.
+    # Pi(-nu | m)), with those at the times (_state_at); the complete ones are used for every time
+    # at which the amplitude has turned.
     h0, s0, c0 = reduced_amplitude(sn0, cn0)
     chi0 = _chi(_trig.atan2(sn0, cn0), sn0, cn0, kb, kc)
     scalars = dict(m=m, mc=mc, lam=lam, amp_a=amp_a, r_cb=r_cb, g=g, sigma=sigma, s=s, wb_hat=wb_hat, abs_wa=abs_wa)
@@ -254,21 +261,17 @@ def _motion(q0: Array, w0: list[Array], moments: list[Array], a: Array, b: Array
     )
     fields: dict[str, Any] = {name: next(out) for name in scalars}
     fields.update({name: tuple(next(out) for _ in v) for name, v in vectors.items()})
-    m, mc, nu = fields["m"], fields["mc"], fields["nu"]
-    h0, s0, c0, y0 = (fields.pop(name) for name in ("h0", "s0", "c0", "y0"))  # used here only
-    f, pi = legendre(
+    m, mc = fields["m"], fields["mc"]
+    s0, c0, y0 = (fields.pop(name) for name in ("s0", "c0", "y0"))  # used here only
+    # The integrals at the amplitude at time 0 and the complete ones (K and Pi(-nu | m)) are taken
+    # with those at the times, in one Carlson loop (_state_at).
+    start = (
         jnp.stack([s0, jnp.ones_like(s0)]),
         jnp.stack([c0 * c0, jnp.broadcast_to(tiny(c0), c0.shape)]),
         jnp.stack([y0, complete_y(mc, True)]),
-        -nu[None],
     )
-    # The whole turns of the amplitude at t come from am(u0 + lambda t), u0 = F(am u0) = 2 h0 K + F(r0)
-    # (only rounded, so formed without derivatives).
-    agm_of_m = jax.lax.stop_gradient(agm(m, mc))
-    u0 = jax.lax.stop_gradient(h0 * jnp.pi / agm_of_m[1] + f[0])
-    pi_full, pi0, u0 = _fusion.one_loop_both_ways((pi[1], 2 * h0 * pi[1] + pi[0], u0))
-    fields.update(pi_full=pi_full, pi0=pi0, rd_complete=complete_rd(mc), u0=u0)
-    return _Motion(**fields, agm=agm_of_m)
+    fields.update(rd_complete=complete_rd(mc))
+    return _Motion(**fields, agm=jax.lax.stop_gradient(agm(m, mc)), start=start)
 
 
 def _chi(phi: Array, sn: Array, cn: Array, kb: Array, kc: Array) -> Array:
@@ -276,8 +279,9 @@ def _chi(phi: Array, sn: Array, cn: Array, kb: Array, kc: Array) -> Array:
     return phi + _trig.atan2((kb - kc) * sn * cn, kc * cn * cn + kb * sn * sn)
 
 
-def _state_at(k: _Motion, t: Array) -> tuple[list[Array], list[Array]]:
-    """The elliptic solution at times ``t`` from the per-body part ``k`` (broadcast against ``t``)."""
+def _state_at(body: _Motion, t: Array) -> tuple[list[Array], list[Array]]:
+    """The elliptic solution at times ``t`` (shaped ``B + T``) from the per-body part ``body``."""
+    k = body.at_times(t)
     m, mc, lam, s, sigma, ell, ia, ic = k.m, k.mc, k.lam, k.s, k.sigma, k.ell, k.ia, k.ic
     r_cb, wb_hat, wc, sn0, cn0, dn0 = k.r_cb, k.wb_hat, k.wc, k.sn0, k.cn0, k.dn0
     # Angular velocity by the addition theorems in v = lambda t (smooth at a pure spin about a).
@@ -308,13 +312,18 @@ def _state_at(k: _Motion, t: Array) -> tuple[list[Array], list[Array]]:
     # quarter turn between multiples of K, so they differ by less than pi / 2 and the rounding
     # keeps a margin of a quarter turn; a second Landen descent per time (the unwrapped amplitude)
     # gave the same integers for a fifth more of the forward pass.
+    # One Carlson loop for Pi at the times and, per body, F and Pi at time 0 and the complete ones.
+    (f, pi), (_, pi_part) = legendre_joint((*body.start, -body.nu[None]), (st, ct * ct, partial_y(ct, m, mc), -k.nu))
+    # The whole turns of the amplitude at t come from am(u0 + lambda t), u0 = F(am u0) = 2 h0 K + F(r0)
+    # (only rounded, so formed without derivatives).
     sg = jax.lax.stop_gradient
-    turns = jnp.round(sg(k.agm[1] * (k.u0 + lam * t) - theta_t) / (2 * jnp.pi))
-    _, pi_part = legendre(st, ct * ct, partial_y(ct, m, mc), -k.nu)
-    pi_t = 2 * (2 * turns + ht) * k.pi_full + pi_part
+    u0 = sg(body.h0 * jnp.pi / body.agm[1] + f[0])
+    pi_full, pi0, u0 = _to_times(list(_fusion.one_loop_both_ways((pi[1], 2 * body.h0 * pi[1] + pi[0], u0))), t)
+    turns = jnp.round(sg(k.agm[1] * (u0 + lam * t) - theta_t) / (2 * jnp.pi))
+    pi_t = 2 * (2 * turns + ht) * pi_full + pi_part
     psi = (
         ell * t / ia
-        + ell * (ia - ic) / (ia * ic * lam) * (pi_t - k.pi0)
+        + ell * (ia - ic) / (ia * ic * lam) * (pi_t - pi0)
         + jnp.sign(ic - ia) * (_chi(2 * jnp.pi * turns + theta_t, snt, cnt, k.kb, k.kc) - k.chi0)
     )
     (psi,) = _fusion.one_loop_both_ways((psi,))
@@ -384,10 +393,16 @@ def propagate(q0: Array, omega0: Array, moments: Array, t: Array) -> tuple[Array
     against 207 ms in float64 (the loops of the AGM and of one Carlson evaluation run per body;
     ``docs/benchmarks.md``). Session 47 made the per-time part cheaper (one Landen descent, Carlson's
     ``R_C`` vectorised, the attitude on components): 16-18 ms and 31-37 ms, the gradient 76-79 and
-    143-152 ms (``docs/integrators.md``, "The closed form's derivatives")."""
+    143-152 ms (``docs/integrators.md``, "The closed form's derivatives"). Since session 64 the
+    per-body integrals share the Carlson loop of the times (:func:`jaxquat.mechanics.elliptic.legendre_joint`):
+    one pinned core of a 2-core AMD EPYC, two fresh processes each, the same program before and
+    after: the first eager call 2.22-2.33 -> 1.99-2.07 s in float32 and 2.25-2.29 -> 2.13-2.20 s in
+    float64, the first gradient (compile and run) 7.26-7.27 -> 5.49-5.76 s and 7.40-7.62 -> 5.72-6.33
+    s, later calls 18.7-18.9 -> 15.6-16.4 ms and 40.3-40.6 -> 39.2-39.3 ms, gradients 83.8-87.0 ->
+    76.4-78.2 ms and 188-193 -> 184-190 ms."""
     times = (None,) * (t.ndim - (q0.ndim - 1))
     general, safe_w, safe_i, roles = _safe_state(_arrays.components(moments), _arrays.components(omega0))
-    q_gen, w_gen = _state_at(_motion(q0, safe_w, safe_i, *roles).at_times(t), t)
+    q_gen, w_gen = _state_at(_motion(q0, safe_w, safe_i, *roles), t)
     # The steady rotation q0 Exp(w0 t) and the selects on components, in the one loop of the rest.
     q0, omega0, general = q0[(..., *times, slice(None))], omega0[(..., *times, slice(None))], general[(..., *times)]
     w0 = _arrays.components(omega0)
@@ -412,9 +427,9 @@ def euler_poinsot(
     ``(q0, omega0)`` at time 0 (``t`` may be negative). ``q0`` is assumed unit;
     the result is unit to rounding. All arguments broadcast over leading axes
     (``t`` has no trailing axis): pass ``t`` shaped ``(n,)`` with one body to
-    get a trajectory. Cost, independent of ``t``: per body one AGM and one Carlson
-    ``R_F``/``R_J`` pass (the integrals at time 0 and the complete ones), per time
-    one Landen descent and one Carlson pass; error about ``eps * lambda t``
+    get a trajectory. Cost, independent of ``t``: per body one AGM and two Carlson
+    ``R_F``/``R_J`` evaluations (the integrals at time 0 and the complete ones), per time
+    one Landen descent and one Carlson evaluation, all Carlson evaluations in one loop; error about ``eps * lambda t``
     in the phase. Near the separatrix (``|L|^2 = 2 E I_mid``) the elliptic
     parameter tends to 1 and the formulas stay accurate: the complementary
     parameter is formed without cancellation, and the amplitudes enter the
