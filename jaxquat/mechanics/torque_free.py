@@ -189,7 +189,8 @@ class _Motion(NamedTuple):
     start: tuple[Array, Array, Array]
 
     def at_times(self, t: Array) -> _Motion:
-        """Each field broadcast to the shape of the times ``t`` (``batch + T``), once: reverse mode
+        """Each field but ``start`` (kept per body) broadcast to the shape of the times ``t``
+        (``batch + T``), once: reverse mode
         then sums each per-body cotangent over the times once, not at every use. With one axis of
         times (``simulate``'s case) the broadcasts are one :func:`jaxquat._fusion.spread`, whose
         cotangents are summed in one loop, not a reduction (a kernel) each: ``simulate``'s default
