@@ -138,7 +138,11 @@ def test_incomplete_integrals_unwrap():
     assert_close(pi, 2 * j * pi_ref(np.pi / 2) + pi_ref(r), tol=TOL * 20, what="Pi")
 
 
-_legendre_apart = jax.jit(lambda a, b: (el.legendre(*a), el.legendre(*b)))
+def _legendre_each(a, b):
+    return el.legendre(*a), el.legendre(*b)
+
+
+_legendre_apart = jax.jit(_legendre_each)
 _legendre_joint = jax.jit(lambda a, b: tuple(el.legendre_joint(a, b)))
 
 
@@ -165,10 +169,7 @@ def test_legendre_of_several_sets_in_one_loop_is_legendre_of_each():
     def total(fn):
         return lambda a, b: sum(jnp.sum(x * (1 + i)) for i, x in enumerate(jax.tree.leaves(fn(a, b))))
 
-    grads = [
-        jax.jit(jax.grad(total(fn), argnums=(0, 1)))(a, b)
-        for fn in (el.legendre_joint, lambda a, b: (el.legendre(*a), el.legendre(*b)))
-    ]
+    grads = [jax.jit(jax.grad(total(fn), argnums=(0, 1)))(a, b) for fn in (el.legendre_joint, _legendre_each)]
     for got, want in zip(*(jax.tree.leaves(g) for g in grads)):
         assert_close(got, want, tol=TOL, what="legendre_joint's gradient")
 
