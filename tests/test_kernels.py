@@ -8,6 +8,7 @@ the functions they replace, checked here against independent references (NumPy's
 derivatives, finite differences, the Hamilton product in rows).
 """
 
+import importlib.metadata
 import math
 import re
 
@@ -182,6 +183,60 @@ def test_one_loop_lowers_to_a_variadic_reduce_on_cpu_only():
     assert reduces(jax.grad(loss(_fusion.one_loop)), x) == plain_grad
     assert reduces(three(_fusion.one_loop_both_ways), x, platform="cuda") == 0
     assert reduces(jax.grad(loss(_fusion.one_loop_both_ways)), x, platform="cuda") == plain_grad
+
+
+_fusible_jit = jax.jit(_fusion.fusible)
+
+
+def test_fusible_is_the_identity_to_the_bit_and_to_every_transform():
+    """``fusible`` passes every float unchanged (signed zeros, infinities, NaN, subnormals and the
+    largest finite value included), compiled and eager, in each float dtype, and integers and
+    booleans as they are; its tangent and cotangent are the identity (exact ones), also under
+    ``vmap`` and ``jacfwd``."""
+    for dtype in (DTYPE, jnp.float16, jnp.bfloat16):
+        info = jnp.finfo(dtype)
+        special = [0.0, -0.0, 1.5, -2.25, np.inf, -np.inf, np.nan, float(info.smallest_subnormal), float(info.max)]
+        x = jnp.asarray(special, dtype)
+        bits = {2: np.uint16, 4: np.uint32, 8: np.uint64}[x.dtype.itemsize]
+        for out in (_fusible_jit(x), _fusion.fusible(x)):
+            assert out.dtype == x.dtype
+            np.testing.assert_array_equal(np.asarray(out).view(bits), np.asarray(x).view(bits))
+    ints, flags = jnp.arange(5), jnp.arange(5) > 2
+    assert _fusion.fusible(ints) is ints and _fusion.fusible(flags) is flags
+    x = jnp.linspace(-2.0, 3.0, 6, dtype=DTYPE)
+    _, tangent = jax.jvp(_fusion.fusible, (x,), (x * 3,))
+    np.testing.assert_array_equal(tangent, x * 3)
+    np.testing.assert_array_equal(jax.grad(lambda v: jnp.sum(_fusion.fusible(v) * x))(x), x)
+    np.testing.assert_array_equal(jax.jacfwd(jax.vmap(_fusion.fusible))(x), np.eye(6, dtype=NP_DTYPE))
+
+
+@pytest.mark.skipif(not X64, reason="a compiling test: its verdict does not depend on the dtype")
+@pytest.mark.skipif(jax.default_backend() != "cpu", reason="the loops are reduces on CPU only")
+def test_fusible_puts_a_division_with_several_users_into_their_loop():
+    """The reason for ``fusible``: XLA's CPU fusion emitters (jaxlib's default, which the suite
+    otherwise turns off: ``tests/conftest.py``) leave a division that feeds several outputs of one
+    ``one_loop`` out of that loop (a kernel of its own, writing an array); through ``fusible`` it
+    is computed in the loop, and the compiled program has one kernel fewer, with the same values.
+    (The older emitters fuse it either way.)"""
+    x = jnp.linspace(1.0, 2.0, 1000, dtype=DTYPE)
+    jaxlib = tuple(int(v) for v in importlib.metadata.version("jaxlib").split(".")[:2])
+    emitters = {"xla_cpu_use_fusion_emitters": True} if jaxlib < (0, 11) else None  # later: the only ones
+
+    def outputs(wrap):
+        def f(a, b, c):
+            m = wrap(a / b)
+            return _fusion.one_loop((m * c, m + c, m * m))
+
+        return jax.jit(f, compiler_options=emitters)
+
+    def kernels(fn):
+        text = fn.lower(x, x + 1, x + 2).compile().as_text()
+        return len(re.findall(r"^\s+(?:ROOT )?%\S+ = .* fusion\(", text[text.index("ENTRY") :], re.M))
+
+    plain, fused = outputs(lambda m: m), outputs(_fusion.fusible)
+    assert kernels(plain) == 2 and kernels(fused) == 1
+    for got, want in zip(fused(x, x + 1, x + 2), plain(x, x + 1, x + 2)):
+        np.testing.assert_array_equal(got, want)
 
 
 @pytest.mark.skipif(not X64, reason="a lowering test: its verdict does not depend on the dtype")
