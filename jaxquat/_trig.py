@@ -54,6 +54,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from . import _fusion
+
 # sin(r) = r + r^3 P(r^2), cos(r) = 1 - r^2/2 + r^4 Q(r^2) on |r| <= pi/4 (Moshier's
 # double-precision kernels; good to float32 rounding too).
 _SIN = (
@@ -301,11 +303,14 @@ def atan2(y: Array, x: Array) -> Array:
 
 
 def _atan2_value(y: Array, x: Array) -> Array:
+    # The ratio through _fusion.fusible: the polynomial reads it several times, and XLA left the
+    # division a kernel of its own. to_rotvec's value at 10^6 rotations (one core, least of 7,
+    # two processes each): 5.17-5.19 -> 4.54-4.73 ms in float32, 26.8-27.2 -> 21.3-22.7 ms in float64.
     ax, ay = jnp.abs(x), jnp.abs(y)
     swap = ay > ax
     num = jnp.where(swap, ax, ay)
     den = jnp.where(swap, ay, ax)
-    r = atan2_of_ratio(divide(num, jnp.where(den == 0, 1.0, den)), swap, x)
+    r = atan2_of_ratio(_fusion.fusible(divide(num, jnp.where(den == 0, 1.0, den))), swap, x)
     return jnp.where(jnp.signbit(y), -r, r)
 
 

@@ -59,7 +59,7 @@ def agm(m: Array, mc: Array) -> tuple[tuple[Array, Array, Array], Array]:
     def step(abc, _):
         a, b, c2 = abc  # c2 = c_n^2
         a_next = (a + b) / 2
-        b_next, c_next = jnp.sqrt(a * b), c2 / (4 * a_next)
+        b_next, c_next = _fusion.fusible(jnp.sqrt(a * b)), _fusion.fusible(c2 / (4 * a_next))
         return (a_next, b_next, c_next * c_next), (a_next, b_next, c_next)
 
     start = jnp.broadcast_arrays(jnp.ones_like(b0), b0, m)
@@ -79,7 +79,7 @@ def amplitude(u: Array, steps: tuple[Array, Array, Array], a_last: Array) -> Arr
     def step(phi, abc):
         a, b, c = abc
         s, co = _trig.sincos(phi)
-        return (phi + _trig.atan2(c * s, jnp.sqrt((a * co) ** 2 + (b * s) ** 2))) / 2, None
+        return (phi + _trig.atan2(c * s, _fusion.fusible(jnp.sqrt((a * co) ** 2 + (b * s) ** 2)))) / 2, None
 
     phi0 = (2.0**_AGM_STEPS) * a_last * u
     # Rank-aligned, not broadcast: a per-body AGM shared by many u stays per body in the loop's
@@ -200,7 +200,7 @@ def ellipk(m: Float[ArrayLike, "*batch"]) -> Array:
 
 
 def _duplicate(x: Array, y: Array, z: Array) -> tuple[Array, Array, Array, Array]:
-    sx, sy, sz = jnp.sqrt(x), jnp.sqrt(y), jnp.sqrt(z)
+    sx, sy, sz = (_fusion.fusible(jnp.sqrt(v)) for v in (x, y, z))
     return sx, sy, sz, sx * sy + sy * sz + sz * sx
 
 
@@ -258,9 +258,9 @@ def carlson(x: Array, y: Array, z: Array, p: Array) -> tuple[Array, Array]:
         x, y, z, p, total = _fusion.one_loop_backward(carry)
         scale = jnp.asarray(0.25, x.dtype) ** i.astype(x.dtype)
         sx, sy, sz, lam = _duplicate(x, y, z)
-        sp = jnp.sqrt(p)
+        sp = _fusion.fusible(jnp.sqrt(p))
         d = (sp + sx) * (sp + sy) * (sp + sz)
-        total = total + scale / d * _rc_one(delta * scale**3 / (d * d))
+        total = total + _fusion.fusible(scale / d) * _rc_one(_fusion.fusible(delta * scale**3 / (d * d)))
         return _fusion.one_loop_both_ways(((x + lam) / 4, (y + lam) / 4, (z + lam) / 4, (p + lam) / 4, total))
 
     carry = lax.fori_loop(0, _DUPLICATION_STEPS, step, (x, y, z, p, zero))
