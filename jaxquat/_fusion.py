@@ -1,6 +1,7 @@
 """One loop for many outputs on CPU: :func:`one_loop`, :func:`one_loop_backward`,
-:func:`one_loop_both_ways`; :func:`sums`, many sums over one axis in one loop; and
-:func:`spread`, many broadcasts along a new axis whose cotangents are those sums.
+:func:`one_loop_both_ways`; :func:`sums`, many sums over one axis in one loop;
+:func:`spread`, many broadcasts along a new axis whose cotangents are those sums; and
+:func:`fusible`, an identity that lets XLA fuse an expensive operation with several users.
 
 XLA's CPU compiler (jaxlib 0.10.2, its defaults) gives every output array of an element-wise
 computation a kernel of its own and copies into each kernel every producer it needs: a step
@@ -92,28 +93,28 @@ def fusible(x: Array) -> Array:
     Why: XLA's CPU compiler with its fusion emitters (jaxlib 0.10.2's default) does not duplicate
     an expensive producer (a floating division, a square root, a transcendental) and leaves one
     with several users out of its consumers' loop, even when all those users end up in the same
-    loop: a kernel of its own, writing an array that the next kernel reads back (``a / b`` feeding
-    three outputs of one :func:`one_loop` compiled as two kernels; the older emitters, which the
-    test suite runs, fuse it). After ``fusible`` the operation has one user, and
-    the reduction to the same precision is cheap, so XLA copies it into each consumer: where those
-    are one loop, the operation is computed there once. Where they are several loops, the
-    operation is left out as before. XLA's simplifier keeps a ``reduce_precision`` that rounds
-    nothing (its option to remove them is off by default). Non-floating arrays are returned as
-    they are. Its derivatives are the same identity on the tangent and the cotangent.
+    loop: a kernel of its own, writing an array that the next kernel reads back (``a / b``
+    feeding three outputs of one :func:`one_loop` compiled as two kernels; the older emitters,
+    which the test suite runs, fuse it). After ``fusible`` the operation has one user, and the
+    reduction to the same precision is cheap, so XLA copies it into each consumer: where those
+    are one loop, the operation is computed there once; where they are several loops, the
+    operation is left out as before. XLA keeps the ``reduce_precision`` (``tests/test_kernels.py``
+    checks that the division above is fused, which would fail if a later XLA dropped it).
+    Non-floating arrays are returned as they are. Its derivatives are the same identity on the
+    tangent and the cotangent.
 
     Measured on ``simulate``'s default path (the closed form, 1000 bodies x 101 saved times,
-    float32, jaxlib 0.10.2, a 2-core AMD EPYC), with the per-body quantities, the unit pairs,
-    the minimal rotation, the AGM and Carlson steps and ``atan2``'s ratio through it (session 65): the forward program
-    71 -> 47 compiled kernels, the first eager call 1.42 -> 1.12-1.25 s (XLA 1.07 -> 0.79-0.89
-    s; three fresh processes each, alternated); later calls on one core 15.6-16.8 -> 14.3-14.5
-    ms, one ``jvp`` 25.5-26.0 -> 22.6-22.9 ms, the gradient 77-80 -> 76-77 ms (float64, three
-    runs: 39.0-40.7 -> 38.6-39.5, 80-83 -> 72-79 and 184-200 -> 172-180 ms). The gradient's
-    program 197 -> 187 kernels; its first call (one Adam step) did not move beyond the spread
-    (3.8-3.9 against 3.5-4.1 s). The same
-    identity after every division, square root and transcendental of the whole program (a probe
-    that patched JAX's primitives) reached 46 and 183 kernels; ``simulate``'s scan path and the
-    optimal-control solvers' first calls did not change under that probe (their kernels have no
-    expensive operation with several users)."""
+    float32, jaxlib 0.10.2, a 2-core AMD EPYC), with the per-body quantities, the unit pairs, the
+    minimal rotation, the AGM and Carlson steps and ``atan2``'s ratio through it (session 65):
+    the forward program 71 -> 47 compiled kernels, the first eager call 1.42 -> 1.12-1.25 s (XLA
+    1.07 -> 0.79-0.89 s; three fresh processes each, alternated); later calls on one core
+    15.6-16.8 -> 14.3-14.5 ms, one ``jvp`` 25.5-26.0 -> 22.6-22.9 ms, the gradient 77-80 -> 76-77
+    ms (float64, three runs: 39.0-40.7 -> 38.6-39.5, 80-83 -> 72-79 and 184-200 -> 172-180 ms).
+    The gradient's program 197 -> 187 kernels; its first call (one Adam step) did not move beyond
+    the spread (3.8-3.9 against 3.5-4.1 s). The same identity after every division, square root
+    and transcendental of the whole program (a probe that patched JAX's primitives) reached 46
+    and 183 kernels; ``simulate``'s scan path and the optimal-control solvers' first calls did
+    not change under that probe (their kernels have no expensive operation with several users)."""
     dtype = jnp.result_type(x)
     if not jnp.issubdtype(dtype, jnp.floating):
         return x
