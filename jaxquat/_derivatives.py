@@ -18,8 +18,9 @@ inputs, which it holds anyway). Three things make XLA compile a kernel into one 
 - its output's components pass through :func:`jaxquat._fusion.one_loop` (a variadic ``reduce``,
   always one loop) before they are stacked;
 - it is traced in kernel mode (:func:`jaxquat._trig.kernel_mode`): divisions and square roots
-  come from multiplies (XLA's CPU fusion never duplicates a floating divide or square root, so
-  each one with two users was an array of its own), the scalars' optimisation barriers
+  pass through :func:`jaxquat._fusion.fusible` (XLA's CPU fusion never duplicates a floating
+  divide or square root, so each one with two users was an array of its own; until session 65
+  they were built from multiplies instead), the scalars' optimisation barriers
   (:func:`jaxquat._arrays.scalars`) are off, and the ops' component splits and stacks are plain;
 - the op is written on components (:func:`jaxquat._arrays.components`), so the kernel's
   arithmetic is element-wise.

@@ -80,9 +80,9 @@ def _sinc_cos_of_sq_parts(s: Array) -> tuple[Array, Array, Array]:
     small = s < _TRIG_SWITCH
     s_small = jnp.where(small, s, 0.0)
     s_direct = jnp.where(small, _TRIG_SWITCH, s)
-    # In kernel mode x and 1/x come from one rsqrt: two reciprocals fewer, each a bit-pattern guess
-    # and Newton's steps there (slerp's gradient kernel 693 -> 639 operations; the figures with
-    # _atan2_over_n_kernel's).
+    # In kernel mode x and 1/x come from one rsqrt: two reciprocals fewer (until session 65 each a
+    # bit-pattern guess and Newton's steps: slerp's gradient kernel 693 -> 639 operations; the
+    # figures with _atan2_over_n_kernel's).
     if _trig.in_kernel():
         inv_x = _trig.rsqrt(s_direct)
         x = s_direct * inv_x
@@ -225,8 +225,8 @@ def _atan_derivative_series(nsq: Array, rows: Array, inv: Array) -> Array:
 
 def _atan2_over_n_kernel(nsq: Array, w: Array) -> tuple[Array, Array, Array]:
     """:func:`_atan2_over_n_parts` in kernel mode, the same branches and series on three
-    reciprocals instead of eight (each a bit-pattern guess and Newton's steps there,
-    :func:`jaxquat._trig.reciprocal`): ``rsqrt(nsq)`` gives ``n`` and ``1/n``; one reciprocal of
+    reciprocals instead of eight (:func:`jaxquat._trig.reciprocal`; until session 65 each was a
+    bit-pattern guess and Newton's steps): ``rsqrt(nsq)`` gives ``n`` and ``1/n``; one reciprocal of
     ``max(n, |w|)`` gives the ratio inside ``atan2`` and, on the series' rows (where ``|w| > n``),
     ``1/w``; the third is ``1 / (n^2 + w^2)``; ``atan``'s own argument reduction keeps its own.
     ``df/dnsq = (w r - f) / (2 nsq)`` is ``(w r - f) (1/n)^2 / 2``. Its operations in kernel

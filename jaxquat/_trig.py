@@ -37,11 +37,15 @@ Derivatives are defined by ``custom_jvp`` from the exact identities
 so gradients are as accurate as the values.
 
 Kernel mode (:func:`kernel_mode`, :func:`in_kernel`): while :mod:`jaxquat._derivatives` traces
-an op's derivative kernel, :func:`divide` and :func:`sqrt` (and ``atan2``, which divides) use
-:func:`reciprocal` and :func:`rsqrt`, built from multiplies: XLA's CPU fusion counts a floating
-divide or square root as expensive and never duplicates one, so each one with two users became
-an array of its own, written and read back, and the kernel several loops instead of one
-(measured there). Outside kernel mode they are ``/`` and ``jnp.sqrt``.
+an op's derivative kernel, :func:`divide` and :func:`sqrt` (and ``atan2``, which divides), like
+:func:`reciprocal` and :func:`rsqrt`, pass their result through :func:`jaxquat._fusion.fusible`
+and differentiate through it: XLA's CPU fusion emitters count a floating division or square root
+as expensive and never duplicate one, so each one with two users became an array of its own,
+written and read back, and the kernel several loops instead of one. Until session 65 these
+four were built from multiplies (a bit-pattern guess and Newton's iterations, within 0.5-1.25
+ulp on a range of arguments); now they are XLA's own correctly rounded operations, and faster
+(in :func:`reciprocal`'s docstring). Outside kernel mode :func:`divide` and :func:`sqrt` are
+``/`` and ``jnp.sqrt``.
 """
 
 from __future__ import annotations
@@ -149,45 +153,24 @@ def in_kernel() -> bool:
     return _KERNEL.get()
 
 
-# Bit-pattern first guesses: 1/a from (MAGIC - bits(a)), 1/sqrt(a) from (MAGIC - bits(a) / 2), each
-# within 12.5 % and 0.2 %; Newton's iterations square the relative error (1/a) or about that (1/sqrt(a)).
-_RECIPROCAL = {32: (0x7EF311C3, 4), 64: (0x7FDE623822FC16E6, 5)}
-_RSQRT = {32: (0x5F375A86, 3), 64: (0x5FE6EB50C7B537A9, 4)}
-
-
-def _guess(a: Array, magic: int, shift: int) -> Array:
-    itype = jnp.int64 if _is64(a) else jnp.int32
-    bits = jax.lax.bitcast_convert_type(a, itype)
-    return jax.lax.bitcast_convert_type(jnp.asarray(magic, itype) - (bits >> shift), a.dtype)
-
-
 @jax.custom_jvp
 def reciprocal(y: Array) -> Array:
-    """``1 / y`` from multiplies only: a bit-pattern guess, then Newton's ``r + r (1 - |y| r)``
-    (the residual first, so a power of two comes out exact, where ``r (2 - |y| r)`` stalls an ulp
-    short). Within 0.5 ulp of ``1 / y`` for ``2^-126 <= |y| < 2^125`` (float32; ``2^-1022`` and
-    ``2^1021`` in float64; ``tests/test_trig.py``) where XLA fuses the residual's multiply and
-    subtract into one fused multiply-add (FMA: CPUs that have it, x86-64 since 2013 and every ARM64
-    one, and GPUs), within 1.25 ulp where it rounds the product first (measured 1.24 ulp in both
-    dtypes, XLA limited to AVX: ``--xla_cpu_max_isa=AVX``); beyond that range (where the guess's
-    exponent leaves the normal range) and at zero, a finite but wrong number; NaN gives NaN.
-    float16 and bfloat16 go through float32.
+    """``1 / y``, correctly rounded, through :func:`jaxquat._fusion.fusible`: one loop with its
+    consumers in a derivative kernel (callers keep ``y`` finite and non-zero; ``1 / 0`` is
+    infinite). Its derivative ``-r^2 dy`` reads the fused ``r``, so that the division keeps one
+    user under differentiation too.
 
-    Without FMA the bound holds for ``|y| < 2^100`` (float32; ``2^970`` in float64, the suite checks
-    below ``2^64`` and ``2^512``): above, ``1 / y`` is near the bottom of the normal range and a
-    correction ``r (1 - |y| r)`` subnormal, which XLA's CPU code flushes to zero (measured: up to 5 %
-    off at ``2^124``, 4 % at ``2^1020``). Scaling ``|y|`` down there by a power of two and the result
-    back (a compare, a select and two multiplies) removed that, but cost 7 % of ``to_rotvec``'s
-    gradient at 10^6 rotations (float32, 10.05-10.95 -> 10.96-11.54 ms, one core) for arguments
-    no rotation reaches, so it is not done."""
-    if jnp.finfo(y.dtype).bits < 32:  # float16, bfloat16: in float32
-        return reciprocal(y.astype(jnp.float32)).astype(y.dtype)
-    a = jnp.abs(y)
-    magic, steps = _RECIPROCAL[64 if _is64(y) else 32]
-    r = _guess(a, magic, 0)
-    for _ in range(steps):
-        r = r + r * (1.0 - a * r)
-    return jnp.where(jnp.signbit(y), -r, r)
+    Until session 65 it was built from multiplies (a bit-pattern guess, then Newton's ``r + r (1 -
+    |y| r)``: within 0.5 ulp with fused multiply-adds on ``2^-126 <= |y| < 2^125``, 1.25 ulp
+    without, a wrong finite number beyond), because XLA would not fuse a division with several
+    users. Measured at 10^6 rotations (one core of a 2-core AMD EPYC, least of 7, two processes
+    each, every kernel-mode division, square root, reciprocal and ``rsqrt`` changed together;
+    float32 / float64): ``to_euler`` 5.67-5.77 -> 3.89-3.94 / 32.0-32.4 -> 21.1-22.0 ms and its
+    gradient 5.98 -> 4.15 / 32.4-32.8 -> 25.0-25.7 ms, ``slerp`` 10.1-10.2 -> 8.24 / 44.8-46.3 ->
+    35.7-36.3 ms and its gradient 12.5-12.6 -> 9.9-10.1 / 49.4-51.5 -> 38.3-40.3 ms,
+    ``to_rotvec``'s gradient 6.95-6.98 -> 5.04-5.06 / 35.2-36.5 -> 29.0-30.5 ms; the kernels'
+    count unchanged."""
+    return _fusion.fusible(1.0 / y)
 
 
 @reciprocal.defjvp
@@ -199,18 +182,14 @@ def _reciprocal_jvp(primals, tangents):
 
 @jax.custom_jvp
 def rsqrt(x: Array) -> Array:
-    """``1 / sqrt(x)`` from multiplies only: a bit-pattern guess, then Newton's
-    ``r + r (1 - x r^2) / 2``. Within 1 ulp for normal ``x > 0`` (``tests/test_trig.py``; 1.25
-    ulp without fused multiply-adds, measured 1.21: see :func:`reciprocal`); at
-    zero a large finite number (so ``x * rsqrt(x)`` is 0); NaN gives NaN. float16 and bfloat16
-    go through float32."""
-    if jnp.finfo(x.dtype).bits < 32:  # float16, bfloat16: in float32
-        return rsqrt(x.astype(jnp.float32)).astype(x.dtype)
-    magic, steps = _RSQRT[64 if _is64(x) else 32]
-    r = _guess(x, magic, 1)
-    for _ in range(steps):
-        r = r + 0.5 * r * (1.0 - x * r * r)
-    return r
+    """``1 / sqrt(x)`` for ``x > 0`` (infinite at zero) as two correctly rounded operations,
+    within 1.5 ulp on any CPU (measured 1.46 in float64 and 1.48 in float32), through
+    :func:`jaxquat._fusion.fusible`; its derivative ``-r^3 dx / 2`` reads the fused ``r``. The
+    root passes through ``fusible`` as well, or XLA rewrites ``1 / sqrt`` into its own ``rsqrt``
+    (1.68 ulp in float32 on this CPU, and an approximation whose accuracy is the CPU's). Until
+    session 65 a bit-pattern guess and Newton's iterations (:func:`reciprocal` has why and the
+    figures)."""
+    return _fusion.fusible(1.0 / _fusion.fusible(jnp.sqrt(x)))
 
 
 @rsqrt.defjvp
@@ -220,14 +199,40 @@ def _rsqrt_jvp(primals, tangents):
     return r, -0.5 * r * r * r * dx
 
 
+@jax.custom_jvp
+def _kernel_divide(a: Array, b: Array) -> Array:
+    return _fusion.fusible(a / b)
+
+
+@_kernel_divide.defjvp
+def _kernel_divide_jvp(primals, tangents):
+    (a, b), (da, db) = primals, tangents
+    q = _kernel_divide(a, b)
+    return q, _kernel_divide(da - q * db, b)
+
+
+@jax.custom_jvp
+def _kernel_sqrt(x: Array) -> Array:
+    return _fusion.fusible(jnp.sqrt(x))
+
+
+@_kernel_sqrt.defjvp
+def _kernel_sqrt_jvp(primals, tangents):
+    (x,), (dx,) = primals, tangents
+    y = _kernel_sqrt(x)
+    return y, _kernel_divide(0.5 * dx, y)
+
+
 def divide(a, b):
-    """``a / b``; in kernel mode ``a * reciprocal(b)`` (callers keep ``b`` finite and non-zero)."""
-    return a * reciprocal(b) if in_kernel() else a / b
+    """``a / b``; in kernel mode through :func:`jaxquat._fusion.fusible`, its derivative reading
+    the fused quotient (callers keep ``b`` finite and non-zero)."""
+    return _kernel_divide(a, b) if in_kernel() else a / b
 
 
 def sqrt(x: Array) -> Array:
-    """``sqrt(x)``; in kernel mode ``x * rsqrt(x)`` (callers keep ``x`` finite and ``>= 0``; 0 gives 0)."""
-    return x * rsqrt(x) if in_kernel() else jnp.sqrt(x)
+    """``sqrt(x)``; in kernel mode through :func:`jaxquat._fusion.fusible`, its derivative reading
+    the fused root (callers keep ``x`` finite and ``> 0`` where they differentiate; 0 gives 0)."""
+    return _kernel_sqrt(x) if in_kernel() else jnp.sqrt(x)
 
 
 def _sincos_value(x: Array):

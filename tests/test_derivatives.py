@@ -21,8 +21,8 @@ from jaxquat import _derivatives, _rotation, _trig
 from jaxquat.rotations import euler_angles
 
 EPS = float(np.finfo(NP_DTYPE).eps)
-# Derivatives of O(1) ops: the kernels round differently (reciprocals by Newton's method, another
-# order of operations), a few hundred ulp at most near the singular rows in float32.
+# Derivatives of O(1) ops: the kernels round differently (another order of operations), a few
+# hundred ulp at most near the singular rows in float32.
 RTOL = 1e-12 if X64 else 2e-4
 
 
@@ -156,10 +156,11 @@ def test_slerp_cotangents_sum_over_broadcast_inputs():
 @pytest.mark.skipif(not X64, reason="a lowering test: its verdict does not depend on the dtype")
 @pytest.mark.parametrize("cpu", [True, False], ids=["cpu", "other"])
 def test_gradient_is_one_linear_kernel_on_cpu_only(cpu, monkeypatch):
-    """On CPU the gradient of ``to_rotvec`` is one ``jaxquat_linear_kernel``, compiled into one
-    variadic ``reduce`` (the one loop) and no division or square root (XLA never fuses a division
-    with two users); elsewhere (the backend test patched) the op is its kernel, whose gradient
-    JAX forms (no such primitive)."""
+    """On CPU the gradient of ``to_rotvec`` is one ``jaxquat_linear_kernel``, compiled into two
+    kernels: one variadic ``reduce`` (the one loop, its divisions and square roots inside it,
+    through ``_fusion.fusible``: XLA's fusion emitters otherwise give a division with two users a
+    kernel of its own) and the stack of its results; elsewhere (the backend test patched) the op
+    is its kernel, whose gradient JAX forms (no such primitive)."""
     monkeypatch.setattr(_trig, "_cpu", lambda: cpu)
     q = jnp.asarray(random_quats(1, 8), DTYPE)
     w = jnp.asarray(np.random.default_rng(0).normal(size=(8, 3)), DTYPE)
@@ -173,12 +174,14 @@ def test_gradient_is_one_linear_kernel_on_cpu_only(cpu, monkeypatch):
         hlo = jax.jit(grad).lower(q).compile().as_text()
         reduces = [line for line in hlo.splitlines() if " reduce(" in line]
         assert len(reduces) == 1 and reduces[0].split(" reduce(")[0].count("f64[8]") == 4  # four results
-        assert not re.search(r" (divide|sqrt|rsqrt)\(", hlo)
+        entry = hlo[hlo.index("ENTRY") :]
+        assert len(re.findall(r"^\s+(?:ROOT )?%\S+ = .* fusion\(", entry, re.M)) == 2  # the loop and the stack
 
 
 def test_kernel_mode_values_are_the_values():
-    """Traced in kernel mode (Newton's reciprocals, no barriers, plain splits) each op gives its
-    value to a few ulp, and outside the mode ``divide`` and ``sqrt`` are ``/`` and ``jnp.sqrt``."""
+    """Traced in kernel mode (fusible divisions and roots, no barriers, plain splits) each op gives
+    its value to a few ulp, and outside the mode ``divide`` and ``sqrt`` are ``/`` and
+    ``jnp.sqrt``."""
     for name, (_, plain, make) in OPS.items():
         args = make(11)
         with _trig.kernel_mode():
