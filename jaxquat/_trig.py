@@ -163,13 +163,14 @@ def reciprocal(y: Array) -> Array:
     Until session 65 it was built from multiplies (a bit-pattern guess, then Newton's ``r + r (1 -
     |y| r)``: within 0.5 ulp with fused multiply-adds on ``2^-126 <= |y| < 2^125``, 1.25 ulp
     without, a wrong finite number beyond), because XLA would not fuse a division with several
-    users. Measured at 10^6 rotations (one core of a 2-core AMD EPYC, least of 7, two processes
-    each, every kernel-mode division, square root, reciprocal and ``rsqrt`` changed together;
-    float32 / float64): ``to_euler`` 5.67-5.77 -> 3.89-3.94 / 32.0-32.4 -> 21.1-22.0 ms and its
-    gradient 5.98 -> 4.15 / 32.4-32.8 -> 25.0-25.7 ms, ``slerp`` 10.1-10.2 -> 8.24 / 44.8-46.3 ->
-    35.7-36.3 ms and its gradient 12.5-12.6 -> 9.9-10.1 / 49.4-51.5 -> 38.3-40.3 ms,
-    ``to_rotvec``'s gradient 6.95-6.98 -> 5.04-5.06 / 35.2-36.5 -> 29.0-30.5 ms; the kernels'
-    count unchanged."""
+    users. Measured at 10^6 rotations (one core of a 2-core AMD EPYC, least of 7, three processes
+    each in float32 and two in float64, every kernel-mode division, square root, reciprocal and
+    ``rsqrt`` changed together; float32 / float64): ``to_euler`` 5.56-5.63 -> 3.84-3.89 /
+    31.2 -> 20.8-22.4 ms and its gradient 5.94-6.15 -> 4.16-4.26 / 32.5-33.7 -> 23.3 ms,
+    ``slerp`` 10.1-10.4 -> 8.5-8.9 / 43.9-46.8 -> 34.6-34.8 ms and its gradient 12.4-12.6 ->
+    10.6-10.7 / 49.2-51.0 -> 38.9-40.7 ms, ``to_rotvec``'s gradient 6.74-6.87 -> 5.31-5.39 /
+    34.3-36.4 -> 27.8-28.5 ms; the kernels' count unchanged. (``rsqrt`` as XLA's own was up to 5 %
+    faster in float32, and less accurate: see :func:`rsqrt`.)"""
     return _fusion.fusible(1.0 / y)
 
 
