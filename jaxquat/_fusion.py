@@ -111,9 +111,9 @@ def fusible(x: Array) -> Array:
     15.6-16.8 -> 14.3-14.5 ms, one ``jvp`` 25.5-26.0 -> 22.6-22.9 ms, the gradient 77-80 -> 76-77
     ms (float64, three runs: 39.0-40.7 -> 38.6-39.5, 80-83 -> 72-79 and 184-200 -> 172-180 ms).
     The gradient's program 197 -> 187 kernels; its first call (one Adam step) 3.54-3.69 ->
-    3.35-3.60 s (three processes each, alternated, in a quiet hour). The same identity after every division, square root
-    and transcendental of the whole program (a probe that patched JAX's primitives) reached 46
-    and 183 kernels; ``simulate``'s scan path and the optimal-control solvers' first calls did
+    3.35-3.60 s (three processes each, alternated, in a quiet hour). The same identity after every
+    division, square root and transcendental of the whole program (a probe that patched JAX's
+    primitives) reached 46 and 183 kernels; ``simulate``'s scan path and the optimal-control solvers' first calls did
     not change under that probe (their kernels have no expensive operation with several users)."""
     dtype = jnp.result_type(x)
     if not jnp.issubdtype(dtype, jnp.floating):
