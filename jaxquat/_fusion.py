@@ -98,8 +98,11 @@ def fusible(x: Array) -> Array:
     which the test suite runs, fuse it). After ``fusible`` the operation has one user, and the
     reduction to the same precision is cheap, so XLA copies it into each consumer: where those
     are one loop, the operation is computed there once; where they are several loops, the
-    operation is left out as before. XLA keeps the ``reduce_precision`` (``tests/test_kernels.py``
-    checks that the division above is fused, which would fail if a later XLA dropped it).
+    operation is left out as before. A chain of cheap operations that several loops read, which
+    XLA had made a kernel of its own, ending in ``fusible`` is copied into each of those loops
+    instead (the scan path's rematerialised step: ``integration.struct_of_arrays._recomputed``).
+    XLA keeps the ``reduce_precision`` (``tests/test_kernels.py`` checks that the division above
+    is fused, which would fail if a later XLA dropped it).
     Non-floating arrays are returned as they are. Its derivatives are the same identity on the
     tangent and the cotangent.
 

@@ -92,6 +92,30 @@ def _add(a: Comps, b: Comps) -> Comps:
     return tuple(x + y for x, y in zip(a, b))
 
 
+def _recomputed(xs: Comps, recompute: bool) -> Comps:
+    """``xs`` unchanged; with ``recompute``, each through :func:`jaxquat._fusion.fusible`, so that
+    XLA on CPU computes them again inside every loop that reads them instead of writing them out.
+
+    For the values a stage of the scan path's step shares between two loops in reverse mode: the
+    backward pass evaluates the step again (it is rematerialised), and each stage's increments
+    ``theta_i``, ``z_i``, the products ``I w`` and the cross products of Euler's equations and of
+    ``dexp^-1`` are read by that stage's loop and by the loop of the cotangents. XLA (jaxlib
+    0.10.2, either emitter) gives a chain of cheap operations that two loops read a kernel of its
+    own: 27 of the 37 kernels of the torque-free RKMK4 backward step. Ending the chain in
+    ``fusible`` makes it a cheap producer that XLA copies into both loops: the backward step in
+    10 kernels, the gradient's program 99 -> 72 (the gradient of one step, 8 bodies: 32 -> 14,
+    ``tests/test_integrators.py``). The same operations, the same values (to the bit there).
+    Measured on ``simulate``'s scan path (1000 bodies x 1000 RKMK4 steps, one core of a 2-core
+    AMD EPYC, least of 11 or 21 in each process, processes alternated): torque-free float32
+    gradient 26.6-27.9 -> 24.8-26.6 ms (five processes each), float64 59.7-60.2 -> 56.0-57.5 ms
+    (three), with a PD torque float64 165-166 -> 162 ms; at 10^5 bodies (least of 3) float32 4.67
+    -> 4.22 s and float64 9.55 -> 8.56 s. The forward pass is the same program; one ``jvp`` 1-3 %
+    slower (float64 24.7-25.3 -> 24.8-26.1 ms). Not in :func:`lie_step` (the Lie solvers in
+    ``diffeqsolve``): its backward step, compiled from diffrax's checkpointed loop, kept its 120
+    kernels and its gradient took 75 -> 87 ms (float32)."""
+    return tuple(_fusion.fusible(x) for x in xs) if recompute else xs
+
+
 def cross(a: Comps, b: Comps) -> Comps:
     """``a x b``."""
     return tuple(_rates.cross_parts(a, b))
@@ -112,17 +136,18 @@ def exp(theta: Comps, branches: str = "derivatives by batch") -> Comps:
     return tuple(_rotation.exp_components(theta, branches))
 
 
-def dexpinv(theta: Comps, w: Comps, order: int) -> Comps:
+def dexpinv(theta: Comps, w: Comps, order: int, recompute: bool = False) -> Comps:
     """``J_r(theta)^-1 w`` truncated for an RKMK method of ``order`` (the series of
-    :func:`jaxquat.integration.lie_solvers.dexpinv`)."""
+    :func:`jaxquat.integration.lie_solvers.dexpinv`); ``recompute``: the cross products through
+    :func:`_recomputed`."""
     if order <= 1:
         return w
-    c1 = cross(theta, w)
+    c1 = _recomputed(cross(theta, w), recompute)
     if order == 2:
         return tuple(wi + 0.5 * a for wi, a in zip(w, c1))
     t2 = theta[0] * theta[0] + theta[1] * theta[1] + theta[2] * theta[2] if order >= 5 else None
     coef = _safe.jacobian_inverse_coeff_truncated(order, t2)
-    c2 = cross(theta, c1)
+    c2 = _recomputed(cross(theta, c1), recompute)
     return tuple(wi + 0.5 * a + coef * b for wi, a, b in zip(w, c1, c2))
 
 
@@ -177,6 +202,7 @@ class EulerEquations:
             sym = 0.5 * (inertia + jnp.swapaxes(inertia, -1, -2))
             self._inertia, self._inverse = sym, _arrays.symmetric_inverse(sym)
         self._entries: Comps | None = None
+        self._recompute = False
 
     def entries(self) -> Comps:
         """The arrays this reads: the moments and their inverses (diagonal), or the six distinct
@@ -191,10 +217,12 @@ class EulerEquations:
             return split(self._inertia) + split(self._inverse)
         return tuple(m[..., i, j] for m in (self._inertia, self._inverse) for i, j in _UPPER)
 
-    def with_entries(self, entries: Comps) -> EulerEquations:
-        """A copy that reads ``entries`` (:meth:`entries`' layout, any broadcastable shapes)."""
+    def with_entries(self, entries: Comps, recompute: bool = False) -> EulerEquations:
+        """A copy that reads ``entries`` (:meth:`entries`' layout, any broadcastable shapes);
+        ``recompute``: ``I w`` and ``w x I w`` through :func:`_recomputed` (the scan path's step)."""
         new = copy.copy(self)
         new._entries = tuple(entries)
+        new._recompute = recompute
         return new
 
     @staticmethod
@@ -208,7 +236,8 @@ class EulerEquations:
         e = self.entries()
         half = len(e) // 2  # the tensor's entries, then its inverse's
         h = tuple(m * x for m, x in zip(e[:half], w)) if self.diagonal else self._apply(e[:half], w)
-        gyro = cross(w, h)
+        h = _recomputed(h, self._recompute)
+        gyro = _recomputed(cross(w, h), self._recompute)
         rhs = tuple(-g for g in gyro) if torque is None else tuple(m - g for m, g in zip(torque, gyro))
         if self.diagonal:
             return tuple(r * x for r, x in zip(e[half:], rhs))
@@ -324,6 +353,7 @@ def rkmk_step(
     field_reads_q: bool = True,
     one_loop: bool = False,
     params: Comps = (),
+    recompute: bool | None = None,
 ) -> tuple[Comps, Comps]:
     """One RKMK step of ``tab`` from ``(q, z)`` at ``t0`` over ``h``, for the Lie-algebra field
     ``field(t, q, z, args, params) -> (w_b, z')`` (the body rate on the quaternion, the derivative
@@ -343,11 +373,18 @@ def rkmk_step(
     float64): forward 26.8 / 53.9 ms -> 5.9 / 11.9 ms, gradient 70.8 / 162 ms -> 25.1 / 69.3 ms,
     one ``jvp`` 69.3 / 149 ms -> 15.5 / 30.5 ms. Tried: without the loops per stage (the whole
     step in one loop, forward 6.6 ms, gradient 28.7 ms, ``jvp`` 19.6 ms, float32); the stages'
-    cotangents in one loop each as well (gradient 39.3 / 97.8 ms)."""
+    cotangents in one loop each as well (gradient 39.3 / 97.8 ms).
+
+    ``recompute`` (default: as ``one_loop``): the values a stage's loop shares with the loop of
+    the cotangents are computed in both (:func:`_recomputed`; the field marks its own, as
+    :meth:`EulerEquations.with_entries` does with ``recompute``)."""
     dt = h  # the stage times' step: a scalar, where _inputs broadcasts h to the batch
     if one_loop:
         q, z, h, params, _ = _inputs(q, z, h, params)
-    ks, ls, _ = rkmk_stages(tab, field, t0, dt, h, q, z, args, field_reads_q, one_loop, params=params)
+    recompute = one_loop if recompute is None else recompute
+    ks, ls, _ = rkmk_stages(
+        tab, field, t0, dt, h, q, z, args, field_reads_q, one_loop, params=params, recompute=recompute
+    )
     q1, z1, _, _ = rkmk_combine(tab.b, h, q, z, ks, ls, one_loop)
     return _paired(_fusion.one_loop, q1, z1) if one_loop else (q1, z1)
 
@@ -404,6 +441,7 @@ def rkmk_stages(
     one_loop: bool = False,
     first: tuple[Comps, Comps] | None = None,
     params: Comps = (),
+    recompute: bool = False,
 ) -> tuple[list[Comps], list[Comps], Comps]:
     """The stages of :func:`rkmk_step`: the slopes ``k_i`` (on the quaternion's local coordinates)
     and ``l_i`` (on ``z``) of every stage, and the last stage's body rate ``w_s`` (whose ``dexp^-1``
@@ -411,7 +449,9 @@ def rkmk_stages(
     differ where diffrax flips the time axis). ``first``: the first stage's ``(w_1, l_1)`` when it
     is known already (a first-same-as-last tableau's last stage of the step before). With
     ``one_loop`` each stage's slopes but the last pass through one loop (the last stage goes into
-    the loop of whatever combines them)."""
+    the loop of whatever combines them). ``recompute``: the stage increments ``theta_i`` and
+    ``z_i`` and ``dexp^-1``'s cross products through :func:`_recomputed` (the field's own values
+    are the field's to mark)."""
     ks: list[Comps] = []
     ls: list[Comps] = []
     wi: Comps = ()
@@ -420,8 +460,8 @@ def rkmk_stages(
             theta, qi, zi = None, q, z
         else:
             row = tab.a[i - 1]
-            theta = _weighted(list(zip(row, ks)), h)
-            zi = _add(z, _weighted(list(zip(row, ls)), h))
+            theta = _recomputed(_weighted(list(zip(row, ks)), h), recompute)
+            zi = _recomputed(_add(z, _weighted(list(zip(row, ls)), h)), recompute)
             # a field that does not read q (torque-free Euler's equations) is not handed the stage
             # attitudes: XLA dropped them, but every trace of the step built them (tracing the
             # first simulate at batch 1000: 0.075 -> 0.055 s; one Adam step through it 0.30 ->
@@ -431,7 +471,7 @@ def rkmk_stages(
             wi, li = first
         else:
             wi, li = field(t0 + tab.c[i] * dt, qi, zi, args, params)
-        ki = wi if theta is None else dexpinv(theta, wi, tab.order)
+        ki = wi if theta is None else dexpinv(theta, wi, tab.order, recompute)
         if one_loop and i < len(tab.b) - 1:
             ki, li = _paired(_fusion.one_loop, ki, li)
         ks.append(ki)
@@ -527,7 +567,7 @@ def solve(tab: Tableau, euler: EulerEquations, ts: Array, q0: Array, w0: Array, 
     rematerialised in reverse mode), each step compiled as a few loops (``one_loop``)."""
 
     def field(t, q, w, step_args, entries):
-        return w, euler.with_entries(entries)(t, q, w, step_args)
+        return w, euler.with_entries(entries, recompute=True)(t, q, w, step_args)
 
     def step(y, t0, t1, step_args, jump):
         del jump  # no solver state to refresh
