@@ -146,7 +146,7 @@ def _mostly_small_parts(s: Array) -> tuple[Array, Array, Array]:
     cond's operand read it from one loop; each was a kernel of its own that computed ``s`` again
     from what made it (in an RKMK4 step's derivatives, the last stage and the combination of the
     stages, about 115 operations). Measured on ``simulate``'s scan path (1000 bodies x 1000 RKMK4
-    steps, one core of a 2-core AMD EPYC, least of 11, two processes each, alternated): torque-free
+    steps, one core of a 2-core Intel Xeon, least of 11, two processes each, alternated): torque-free
     float32 one ``jvp`` 13.4-13.7 -> 12.7-13.1 ms, the gradient 25.8-25.9 -> 24.6-25.4 ms; float64
     25.1-26.1 -> 24.2-24.8 ms and 56.0-57.5 -> 52.7-52.8 ms; with a PD torque (its stage attitudes
     chosen by the batch, value too) float32 forward 14.6 -> 14.3 ms, float64 gradient 162.4 ->
