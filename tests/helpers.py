@@ -7,6 +7,7 @@ jitted function compiles once per dtype and is reused across examples.
 from __future__ import annotations
 
 import contextlib
+from importlib.metadata import version
 
 import jax
 import jax.extend
@@ -20,6 +21,9 @@ NP_DTYPE = np.float64 if X64 else np.float32
 # Tolerances for values of O(1): float64 near rounding, float32 a few ulps times condition.
 TOL = 1e-10 if X64 else 2e-5
 BATCH = 16
+# XLA's CPU emitters can be chosen (``xla_cpu_use_fusion_emitters``) before jaxlib 0.11, whose XLA
+# has the fusion emitters only and no longer knows the option (``conftest.py``).
+XLA_CHOOSES_EMITTERS = tuple(int(v) for v in version("jaxlib").split(".")[:2]) < (0, 11)
 
 seeds = st.integers(min_value=0, max_value=2**31 - 1)
 

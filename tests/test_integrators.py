@@ -5,7 +5,6 @@ splittings, measured convergence orders, gradients through the solve, batching."
 from __future__ import annotations
 
 import functools
-import importlib.metadata
 import re
 import os
 import subprocess
@@ -21,6 +20,7 @@ import jaxquat as jq
 from helpers import (
     DTYPE,
     X64,
+    XLA_CHOOSES_EMITTERS,
     assert_close,
     central_difference_jacobian,
     dop853_reference,
@@ -585,10 +585,9 @@ def test_the_scan_path_step_computes_what_its_loops_share_in_each(emitters):
     jaxlib 0.11 XLA has the fusion emitters only (and no option to choose)."""
     from jaxquat.integration import struct_of_arrays as soa
 
-    jaxlib = tuple(int(v) for v in importlib.metadata.version("jaxlib").split(".")[:2])
-    if jaxlib >= (0, 11) and not emitters:
+    if not (XLA_CHOOSES_EMITTERS or emitters):
         pytest.skip("XLA of jaxlib 0.11 has no older emitters")
-    options = {"xla_cpu_use_fusion_emitters": emitters} if jaxlib < (0, 11) else None
+    options = {"xla_cpu_use_fusion_emitters": emitters} if XLA_CHOOSES_EMITTERS else None
 
     comps = tuple(jnp.linspace(0.1, 0.4, 8, dtype=DTYPE) * (1 + i) for i in range(7))
     tab = soa.Tableau.of(jq.RKMK4.tableau, 4)

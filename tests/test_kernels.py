@@ -8,7 +8,6 @@ the functions they replace, checked here against independent references (NumPy's
 derivatives, finite differences, the Hamilton product in rows).
 """
 
-import importlib.metadata
 import math
 import re
 
@@ -19,7 +18,7 @@ import pytest
 from hypothesis import given, settings
 from jax.test_util import check_grads
 
-from helpers import DTYPE, NP_DTYPE, X64, seeds
+from helpers import DTYPE, NP_DTYPE, X64, XLA_CHOOSES_EMITTERS, seeds
 import jaxquat as jq
 from jaxquat import _arrays, _fusion, _jacobi, _quaternion, _safe, _trig
 
@@ -219,8 +218,7 @@ def test_fusible_puts_a_division_with_several_users_into_their_loop():
     is computed in the loop, and the compiled program has one kernel fewer, with the same values.
     (The older emitters fuse it either way.)"""
     x = jnp.linspace(1.0, 2.0, 1000, dtype=DTYPE)
-    jaxlib = tuple(int(v) for v in importlib.metadata.version("jaxlib").split(".")[:2])
-    emitters = {"xla_cpu_use_fusion_emitters": True} if jaxlib < (0, 11) else None  # later: the only ones
+    emitters = {"xla_cpu_use_fusion_emitters": True} if XLA_CHOOSES_EMITTERS else None  # later: the only ones
 
     def outputs(wrap):
         def f(a, b, c):

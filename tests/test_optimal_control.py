@@ -19,7 +19,7 @@ from scipy.optimize import minimize
 
 import jaxquat as jq
 from jaxquat.control.optimal_control import check_tolerance, float64_hint
-from helpers import X64, lowered_programs, run_example_in_process, run_notebook_in_process
+from helpers import X64, XLA_CHOOSES_EMITTERS, lowered_programs, run_example_in_process, run_notebook_in_process
 
 pytestmark = pytest.mark.skipif(not X64, reason="the interior-point method converges to 1e-9 in float64 only")
 
@@ -325,8 +325,6 @@ def test_the_solver_compiles_with_its_own_xla_options_on_the_cpu():
     The suite itself runs with the emitters option set for every program (``conftest.py``), so
     the solves here cannot show the difference; this checks what the probe asks for, and that
     a program compiled with them computes what the default compile does."""
-    from importlib.metadata import version
-
     from jaxquat.control import transcription as tr
 
     options = tr._solver_compiler_options()
@@ -344,9 +342,8 @@ def test_the_solver_compiles_with_its_own_xla_options_on_the_cpu():
     except Exception:
         preset = False
     assert options.get("xla_cpu_opt_preset") == ("CPU_OPT_PRESET_FAST_COMPILE" if preset else None)
-    known = tuple(int(x) for x in version("jaxlib").split(".")[:2]) < (0, 11)
-    assert ("xla_cpu_use_fusion_emitters" in options) == known
-    if known:
+    assert ("xla_cpu_use_fusion_emitters" in options) == XLA_CHOOSES_EMITTERS
+    if XLA_CHOOSES_EMITTERS:
         assert options["xla_cpu_use_fusion_emitters"] is False
 
     def loop(x):

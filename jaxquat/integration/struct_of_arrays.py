@@ -354,7 +354,7 @@ def rkmk_step(
     field_reads_q: bool = True,
     one_loop: bool = False,
     params: Comps = (),
-    recompute: bool | None = None,
+    recompute: bool = False,
 ) -> tuple[Comps, Comps]:
     """One RKMK step of ``tab`` from ``(q, z)`` at ``t0`` over ``h``, for the Lie-algebra field
     ``field(t, q, z, args, params) -> (w_b, z')`` (the body rate on the quaternion, the derivative
@@ -376,13 +376,12 @@ def rkmk_step(
     step in one loop, forward 6.6 ms, gradient 28.7 ms, ``jvp`` 19.6 ms, float32); the stages'
     cotangents in one loop each as well (gradient 39.3 / 97.8 ms).
 
-    ``recompute`` (default: as ``one_loop``): the values a stage's loop shares with the loop of
-    the cotangents are computed in both (:func:`_recomputed`; the field marks its own, as
+    ``recompute``: the values a stage's loop shares with the loop of the cotangents are computed
+    in both (:func:`_recomputed`; the field marks its own, as
     :meth:`EulerEquations.with_entries` does with ``recompute``)."""
     dt = h  # the stage times' step: a scalar, where _inputs broadcasts h to the batch
     if one_loop:
         q, z, h, params, _ = _inputs(q, z, h, params)
-    recompute = one_loop if recompute is None else recompute
     ks, ls, _ = rkmk_stages(
         tab, field, t0, dt, h, q, z, args, field_reads_q, one_loop, params=params, recompute=recompute
     )
@@ -573,7 +572,7 @@ def solve(tab: Tableau, euler: EulerEquations, ts: Array, q0: Array, w0: Array, 
     def step(y, t0, t1, step_args, jump):
         del jump  # no solver state to refresh
         return rkmk_step(
-            tab, field, t0, t1 - t0, y[0], y[1], step_args, euler.torque is not None, True, euler.entries()
+            tab, field, t0, t1 - t0, y[0], y[1], step_args, euler.torque is not None, True, euler.entries(), True
         )
 
     qs, ws = scan_steps(step, ts, (split(q0), split(w0)), args, substeps=substeps)
