@@ -21,7 +21,9 @@ final-attitude loss; forward mode: one jvp tangent, and jacfwd with 3 columns), 
 float64, at batches 10^3 and 10^5, for simulate (RKMK4, and the default closed form) and the
 hand RK4 (checkpointed as simulate's scan path is), compile time (time to the first result
 of simulate, and of one optax step through it), and import time (import jaxquat, its first
-rotation function, its first simulate).
+rotation function, its first simulate). And XLA's split of each CPU kernel between threads at
+small batches: the scan path and the hand RK4 compiled with XLA's defaults and with the split
+off (``jq.cpu_compiler_options``' option), their calls interleaved.
 
     python benchmarks/simulation.py [--batches 1 1000 100000] [--grad-batches 1000 100000]
                                     [--write docs/benchmarks.md]
@@ -251,19 +253,64 @@ def gradient_table(batches, repeats):
     return rows
 
 
-def _autodiff_times(run, q0, w0, target, repeats, warm):
-    """Seconds of ``run``'s forward pass, ``grad``, one-tangent ``jvp`` and 3-column ``jacfwd``."""
+ONE_THREAD = {"xla_disable_hlo_passes": "cpu-parallel-task-assigner"}  # jq.cpu_compiler_options' choice
+
+
+def thread_table(repeats):
+    """XLA's split of each CPU kernel between threads, on and off (``ONE_THREAD``), for the scan
+    path and the hand RK4 at small batches: ``(dtype, batch, contender, case, split, one thread,
+    picked)``, seconds, the two programs' calls interleaved (median of ``3 * repeats`` each), and
+    whether :func:`jaxquat.cpu_compiler_options` picks the option for that batch and dtype."""
+    rows = []
+    for dtype, n in ((F32, 250), (F32, 1000), (F32, 4000), (jnp.float64, 1000)):
+        q0, w0 = bodies(n, seed=1)
+        q0, w0 = jnp.asarray(q0, dtype), jnp.asarray(w0, dtype)
+        target = jq.random(jax.random.PRNGKey(0), (n,), dtype)
+        contenders = (("jaxquat simulate, RKMK4", jaxquat_rkmk4), ("hand RK4, checkpointed", hand_rk4_checkpointed))
+        for name, run in contenders:
+            for case, (fn, args) in zip(("forward", "grad", "jvp"), _autodiff_cases(run, q0, w0, target)):
+                split, one = _interleaved((jax.jit(fn), jax.jit(fn, compiler_options=ONE_THREAD)), args, 3 * repeats)
+                rows.append((jnp.dtype(dtype).name, n, name, case, split, one, bool(jq.cpu_compiler_options(n, dtype))))
+                print(
+                    f"{rows[-1][0]} batch {n:>5} {name:<24} {case:<8} split {split * 1e3:8.2f} ms  one thread "
+                    f"{one * 1e3:8.2f} ms",
+                    flush=True,
+                )
+    return rows
+
+
+def _interleaved(fns, args, repeats):
+    """Median seconds of each of ``fns(*args)``, their calls alternated after one call each."""
+    times = [[] for _ in fns]
+    for f in fns:
+        jax.block_until_ready(f(*args))
+    for _ in range(repeats):
+        for f, ts in zip(fns, times):
+            t0 = time.perf_counter()
+            jax.block_until_ready(f(*args))
+            ts.append(time.perf_counter() - t0)
+    return [float(np.median(ts)) for ts in times]
+
+
+def _autodiff_cases(run, q0, w0, target):
+    """``(function, arguments)`` of ``run``'s forward pass, the ``grad`` of a final-attitude loss in
+    ``w0``, one ``jvp`` tangent on ``w0`` and a 3-column ``jacfwd`` (a rate offset shared by the batch)."""
 
     def loss(w):
         return jnp.mean(jnp.sum((run(q0, w) - target) ** 2, -1))
 
-    cases = (
-        (jax.jit(run), (q0, w0)),
-        (jax.jit(jax.grad(loss)), (w0,)),
-        (jax.jit(lambda w, d: jax.jvp(lambda x: run(q0, x), (w,), (d,))[1]), (w0, w0)),
-        (jax.jit(jax.jacfwd(lambda p: run(q0, w0 + p))), (jnp.zeros(3, w0.dtype),)),
+    return (
+        (run, (q0, w0)),
+        (jax.grad(loss), (w0,)),
+        (lambda w, d: jax.jvp(lambda x: run(q0, x), (w,), (d,))[1], (w0, w0)),
+        (jax.jacfwd(lambda p: run(q0, w0 + p)), (jnp.zeros(3, w0.dtype),)),
     )
-    return [median_time(fn, *a, repeats=repeats, warmup=warm) for fn, a in cases]
+
+
+def _autodiff_times(run, q0, w0, target, repeats, warm):
+    """Seconds of ``run``'s forward pass, ``grad``, one-tangent ``jvp`` and 3-column ``jacfwd``."""
+    cases = _autodiff_cases(run, q0, w0, target)
+    return [median_time(jax.jit(fn), *a, repeats=repeats, warmup=warm) for fn, a in cases]
 
 
 def compile_times():
@@ -333,7 +380,7 @@ def _fresh_runs(code: str, repeats: int) -> np.ndarray:
     return np.asarray(runs, float)
 
 
-def markdown(rows, grad_rows, compiled, imported, closed_form):
+def markdown(rows, grad_rows, compiled, imported, closed_form, thread_rows=()):
     first_sim, first_step = compiled
     by = {(n, name): rate for n, name, rate, *_ in rows}
     lines = [
@@ -364,6 +411,22 @@ def markdown(rows, grad_rows, compiled, imported, closed_form):
             f"| {dtype} | {n:,} | {name} | {fwd * 1e3:.1f} ms | {rev / fwd:.2f}x | {jvp / fwd:.2f}x "
             f"| {jac / fwd:.2f}x |"
         )
+    if thread_rows:
+        lines += [
+            "",
+            "XLA's split of each CPU kernel between threads (its pass `cpu-parallel-task-assigner`) at small "
+            "batches: the same programs compiled with XLA's defaults and with the split off "
+            "(`compiler_options=jq.cpu_compiler_options(batch, dtype)`, which picks it where the last column says), "
+            "their calls interleaved, medians:",
+            "",
+            "| dtype | batch | contender | | XLA's split | one thread | split / one thread | picked |",
+            "|---|---:|---|---|---:|---:|---:|---|",
+        ]
+        for dtype, n, name, case, split, one, picked in thread_rows:
+            lines.append(
+                f"| {dtype} | {n:,} | {name} | {case} | {split * 1e3:.1f} ms | {one * 1e3:.1f} ms | {split / one:.2f}x "
+                f"| {'yes' if picked else 'no'} |"
+            )
     lines += [
         "",
         f"Compile time (time to first result, batch 1000): `simulate` {first_sim:.2f} s; one optax Adam step "
@@ -386,7 +449,14 @@ def main(argv=None):
     ap.add_argument("--grad-batches", type=int, nargs="+", default=[1000, 100_000])
     a = ap.parse_args(argv)
     rows = throughput(a.batches, a.repeats)
-    md = markdown(rows, gradient_table(a.grad_batches, a.repeats), compile_times(), import_times(), first_closed_form())
+    md = markdown(
+        rows,
+        gradient_table(a.grad_batches, a.repeats),
+        compile_times(),
+        import_times(),
+        first_closed_form(),
+        thread_table(a.repeats),
+    )
     print(md)
     if a.write:
         write_section(a.write, "simulation", "## Simulation throughput, gradient cost, compile time\n\n" + md)

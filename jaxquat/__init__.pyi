@@ -151,6 +151,9 @@ from .integration.simulation import (
     Simulation as Simulation,
     simulate as simulate,
 )
+from ._threads import (
+    cpu_compiler_options as cpu_compiler_options,
+)
 from .integration.splitting import (
     AbstractSplitting as AbstractSplitting,
     RigidBodySplit as RigidBodySplit,
@@ -311,6 +314,7 @@ __all__ = [
     "solve_fixed_steps",
     "Simulation",
     "simulate",
+    "cpu_compiler_options",
     "ShootingProblem",
     "ShootingSolution",
     "solve_shooting",

@@ -23,6 +23,7 @@ import numpy as np
 from jax import Array
 
 from .. import _checks, _trig
+from .._threads import at_top_level, cpu_compiler_options
 from ..mechanics.rigid_body import RigidBody
 from ..mechanics.torques import as_body_torque
 from . import fixed_step, principal_frame, struct_of_arrays
@@ -83,12 +84,34 @@ class Config(NamedTuple):
     chunks: tuple[int, int]  # the most bodies per chunk (_in_chunks): the scan path's, the adaptive path's
 
 
-@eqx.filter_jit
 def solve(cfg: Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> tuple[Array, Array, Any]:
     """The solve behind :func:`simulate`, compiled as one program: called eagerly, the solve
     used to dispatch (and compile) every array operation around ``diffeqsolve`` or the scan on
     its own (the suite's ``test_integrators.py``: 1092 compilations of single operations, 31 s;
-    repeated eager calls 0.1-0.8 s each, now microseconds after the first)."""
+    repeated eager calls 0.1-0.8 s each, now microseconds after the first).
+
+    Called eagerly, the program is compiled with :func:`jaxquat.cpu_compiler_options` (on the CPU,
+    a float32 batch of up to 1024 bodies: each loop on one thread, which XLA would split between
+    threads at a loss; ``jaxquat._threads``). Inside a caller's ``jit``, ``vmap`` or ``grad`` it
+    is a plain nested ``jit`` (JAX takes compiler options on a top-level program only): the
+    caller's own options decide."""
+    arrays = (q0, omega0, inertia, shared_inertia, ts, args, dt0)
+    options = cpu_compiler_options(math.prod(q0.shape[:-1]), q0.dtype)
+    if options and at_top_level():
+        return _one_thread_solve(tuple(sorted(options.items())))(cfg, *arrays)
+    return _solve(cfg, *arrays)
+
+
+@functools.cache
+def _one_thread_solve(options: tuple) -> Callable:
+    """:func:`solve`'s program compiled with ``options`` (``jax.jit``'s ``compiler_options`` as
+    sorted pairs), made on first use and kept."""
+    # equinox passes jax.jit's keyword arguments on, though its typed overloads do not list them
+    return eqx.filter_jit(_solve_body, compiler_options=dict(options))  # pyright: ignore[reportCallIssue]
+
+
+def _solve_body(cfg: Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> tuple[Array, Array, Any]:
+    """:func:`solve`'s program."""
     solver, torque, torque_frame, principal, substeps, diagonal, exact, rtol, atol, max_steps, adjoint, progress, _ = (
         cfg
     )
@@ -192,6 +215,9 @@ def solve(cfg: Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> tu
             qs, ws = _in_chunks(batch_first, cfg.chunks[0], *flat, remat=remat)
             sol = None
     return qs.reshape(batch + (n, 4)), ws.reshape(batch + (n, 3)), sol
+
+
+_solve = eqx.filter_jit(_solve_body)
 
 
 def _in_chunks(solve: Callable, size: int, q: Array, w: Array, inertia: Array, remat: bool) -> Any:

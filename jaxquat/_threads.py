@@ -1,0 +1,89 @@
+"""XLA's threads on the CPU: the compiler options that keep a small batch's loops on one thread.
+
+XLA's CPU compiler (jaxlib 0.10.2) splits an element-wise kernel between the threads of its pool
+when a cost model says the kernel is worth it (its pass ``cpu-parallel-task-assigner``: about a
+cycle per floating-point operation and ten per byte accessed, at least 100 000 cycles per
+thread). The model counts unvectorised cycles, so it splits kernels of a microsecond or two: at
+1000 bodies four of the 19 kernels of ``simulate``'s RKMK4 scan step (float32) are split in two
+on a 2-core machine, and handing half of one to the other thread and waiting for it costs more
+than the half saves, at every step. Which kernels it splits, and what the split costs, depend on
+the program and its dtype. Measured (session 67, a 2-core AMD EPYC, jaxlib 0.10.2; ``jax.jit``
+of ``simulate``'s scan path, torque-free, 1000 RKMK4 steps; the two programs' calls interleaved,
+median of 7-15; XLA's default time over the time with the pass off, above 1: one thread faster):
+
+| float32 | 250 | 500 | 1000 | 2000 | 4000 |
+|---|---:|---:|---:|---:|---:|
+| forward | 3.30 | 4.18 | 2.09 | 2.44 | 2.10 |
+| ``grad`` | 1.22 | 1.47 | 1.10 | 1.05 | 0.85 |
+| ``jvp`` | 2.55 | 1.51 | 1.26 | 0.86 | 0.67 |
+
+| float64 | 250 | 500 | 1000 | 2000 | 4000 |
+|---|---:|---:|---:|---:|---:|
+| forward | 2.28 | 0.99 | 0.83 | 0.77 | 1.21 |
+| ``grad`` | 0.91 | 0.89 | 0.97 | 0.88 | 0.86 |
+| ``jvp`` | 1.93 | 1.09 | 0.87 | 0.62 | 0.60 |
+
+(1000 float32 bodies: forward 6.5 against 13.7 ms, ``grad`` 23.3 against 25.7 ms, one ``jvp``
+12.8 against 16.1 ms; on one pinned core, where XLA splits nothing, the forward pass takes
+6.3 ms.) So the option is for float32 batches of up to :data:`SMALL_BATCH` bodies. The values
+are the same to the bit either way (the split divides a loop's elements, not its arithmetic).
+
+A library cannot choose for a program it does not compile: JAX takes ``compiler_options`` on a
+top-level ``jax.jit`` only (a nested one raises ``ValueError``). :func:`cpu_compiler_options`
+gives a user the options for their own ``jit``; ``simulate`` uses them when it compiles its own
+program (an eager call).
+"""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+
+__all__ = ["cpu_compiler_options"]
+
+# The most float32 bodies (elements of a batch) for which one thread per kernel was measured to
+# be faster in the forward pass, ``grad`` and ``jvp`` alike (the module docstring's tables).
+SMALL_BATCH = 1024
+
+_PASS = "cpu-parallel-task-assigner"
+
+
+def cpu_compiler_options(batch: int, dtype=np.float32) -> dict[str, str]:
+    """XLA options for ``jax.jit(fn, compiler_options=...)`` of a program that steps ``batch``
+    bodies (or rotates ``batch`` quaternions) at once in ``dtype``: on the CPU backend, for a
+    float32 (or narrower) batch of at most 1024, XLA's pass that splits each element-wise kernel
+    between threads switched off (``xla_disable_hlo_passes``); ``{}`` otherwise (float64, a larger
+    batch, a GPU or TPU).
+
+    Every loop of the program then runs on the calling thread. XLA's cost model splits kernels of
+    a microsecond or two, and waiting for the second thread costs more than it saves:
+    ``simulate``'s fixed-step scan path at 1000 float32 bodies x 1000 RKMK4 steps (a 2-core CPU,
+    medians) runs its forward pass in 6.5 instead of 13.7 ms, its gradient in 23.3 instead of
+    25.7 ms and one ``jvp`` in 12.8 instead of 16.1 ms. In float64, and from about 2000 float32
+    bodies, XLA's split gains in some of these and is kept (``jaxquat._threads`` has the tables).
+    The results are the same to the bit. Pass the options to a top-level ``jax.jit`` only (JAX
+    refuses them on a nested one); they replace any ``--xla_disable_hlo_passes`` of ``XLA_FLAGS``
+    for that program.
+
+    Example::
+
+        step = jax.jit(loss_and_grad, compiler_options=jq.cpu_compiler_options(1000, jnp.float32))
+    """
+    if isinstance(batch, bool) or not isinstance(batch, (int, np.integer)) or batch < 0:
+        raise ValueError(f"argument 'batch' must be a number of bodies (an int >= 0), got {batch!r}")
+    if batch > SMALL_BATCH or np.dtype(dtype).itemsize > 4 or jax.default_backend() != "cpu":
+        return {}
+    return {"xla_disable_hlo_passes": _PASS}
+
+
+def at_top_level() -> bool:
+    """Whether JAX is evaluating eagerly here, outside any ``jit``, ``vmap`` or ``grad``: where a
+    ``jax.jit`` with ``compiler_options`` may be called (JAX raises ``ValueError`` for one staged
+    into a caller's ``jit``, whose arguments may all be concrete, e.g. NumPy constants). Read
+    from JAX's trace state (``jax._src.core.trace_state_clean``, no public API); where a JAX
+    version lacks it, ``False``: the options are then never passed, which only costs speed."""
+    try:
+        from jax._src.core import trace_state_clean
+    except ImportError:  # pragma: no cover - a JAX without it
+        return False
+    return bool(trace_state_clean())

@@ -1,0 +1,101 @@
+"""XLA's threads on the CPU (``jaxquat._threads``): the options that keep a small float32 batch's
+loops on one thread, the same values with them, and ``simulate`` using them eagerly only."""
+
+from __future__ import annotations
+
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxquat as jq
+from helpers import DTYPE
+
+OPTIONS = {"xla_disable_hlo_passes": "cpu-parallel-task-assigner"}
+I_DIAG = np.diag([1.0, 2.0, 3.0])
+TS = np.asarray([0.0, 0.1])
+
+
+def _bodies(n: int):
+    rng = np.random.default_rng(5)
+    return jq.normalize(jnp.asarray(rng.normal(size=(n, 4)), DTYPE)), jnp.asarray(rng.normal(size=(n, 3)), DTYPE)
+
+
+def _final_attitudes(q0, w0):
+    return jq.simulate(q0, w0, I_DIAG.astype(q0.dtype), TS, solver=jq.RKMK4(), dt0=0.01).q[:, -1]
+
+
+def test_the_options_are_for_small_float32_batches_on_the_cpu():
+    """On the CPU: the pass off for float32 (and narrower) batches of up to 1024, nothing for float64
+    or a larger batch (XLA's split gained there: ``jaxquat._threads``'s tables)."""
+    assert jax.default_backend() == "cpu"
+    assert jq.cpu_compiler_options(1, jnp.float32) == OPTIONS
+    assert jq.cpu_compiler_options(1024, np.float32) == OPTIONS
+    assert jq.cpu_compiler_options(1000, jnp.float16) == OPTIONS
+    assert jq.cpu_compiler_options(1000) == OPTIONS  # float32 by default
+    assert jq.cpu_compiler_options(1025, jnp.float32) == {}
+    assert jq.cpu_compiler_options(10, jnp.float64) == {}
+
+
+@pytest.mark.parametrize("bad", [-1, 2.5, "1000"])
+def test_a_batch_that_is_not_a_count_is_refused(bad):
+    with pytest.raises(ValueError, match="argument 'batch'"):
+        jq.cpu_compiler_options(bad)
+
+
+def test_a_program_compiled_with_the_options_splits_no_loop_and_computes_the_same_bits():
+    """The scan path's gradient for 64 bodies (``DTYPE``), compiled with and without the pass: the
+    same values to the bit, and with the options no kernel carries XLA's partition of its loop
+    (``outer_dimension_partitions``; on a one-core machine XLA partitions nothing either way)."""
+    q0, w0 = _bodies(64)
+
+    def loss(w):
+        return jnp.sum(_final_attitudes(q0, w) * jnp.arange(4, dtype=w.dtype)[None])
+
+    grad = jax.grad(loss)
+    default = jax.jit(grad)
+    one_thread = jax.jit(grad, compiler_options=OPTIONS)
+    assert "outer_dimension_partitions" not in one_thread.lower(w0).compile().as_text()
+    a, b = np.asarray(default(w0)), np.asarray(one_thread(w0))
+    assert a.tobytes() == b.tobytes()
+
+
+def test_simulate_compiles_with_the_options_eagerly_and_stays_nestable(monkeypatch):
+    """An eager ``simulate`` on a small float32 batch compiles its own program with the options (a
+    second, cached ``jit``; in float64 the default program runs), whose values equal the default
+    program's to the bit; inside a caller's ``jit`` whose arguments are all concrete (NumPy
+    constants) it is a plain nested ``jit`` (JAX raises ``ValueError`` for compiler options staged
+    into another ``jit``) and adds no top-level program."""
+    from jaxquat.integration import numerical_solve
+
+    numerical_solve._one_thread_solve.cache_clear()
+    q0, w0 = _bodies(8)
+    eager = np.asarray(_final_attitudes(q0, w0))
+    used = numerical_solve._one_thread_solve.cache_info().currsize
+    assert used == (1 if np.dtype(DTYPE).itemsize <= 4 else 0)
+    q_np, w_np = np.asarray(q0), np.asarray(w0)
+    nested = jax.jit(lambda s: _final_attitudes(q_np, w_np) * s)(jnp.asarray(1, DTYPE))
+    np.testing.assert_allclose(np.asarray(nested), eager, rtol=0, atol=16 * np.finfo(DTYPE).eps)
+    assert numerical_solve._one_thread_solve.cache_info().currsize == used  # no new top-level program
+    monkeypatch.setattr(numerical_solve, "cpu_compiler_options", lambda batch, dtype: {})
+    default = np.asarray(_final_attitudes(q0, w0))  # the default program, eagerly
+    assert default.tobytes() == eager.tobytes()
+
+
+def test_the_options_reach_the_compiled_program():
+    """``jax.jit``'s ``compiler_options`` with the pass name: the compiled program of a kernel XLA
+    would split on a machine with two threads or more (a long element-wise loop) carries no
+    partition, and jaxquat's own ``solve`` with the options compiles (``eqx.filter_jit`` passes
+    them to ``jax.jit``)."""
+    x = jnp.ones(1000, DTYPE)
+
+    def work(x):
+        acc = x
+        for i in range(150):
+            acc = acc * x + 0.01 * i
+        return acc
+
+    text = jax.jit(work, compiler_options=OPTIONS).lower(x).compile().as_text()
+    assert not re.search(r"outer_dimension_partitions", text)
