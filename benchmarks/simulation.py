@@ -46,6 +46,7 @@ import numpy as np  # noqa: E402
 import optax  # noqa: E402
 
 import jaxquat as jq  # noqa: E402
+from jaxquat._threads import ONE_THREAD  # noqa: E402  # the option, also where cpu_compiler_options skips it
 from _report import machine, median_time, write_section  # noqa: E402
 
 DT, STEPS = 0.01, 1000
@@ -251,9 +252,6 @@ def gradient_table(batches, repeats):
                     flush=True,
                 )
     return rows
-
-
-ONE_THREAD = {"xla_disable_hlo_passes": "cpu-parallel-task-assigner"}  # jq.cpu_compiler_options' choice
 
 
 def thread_table(repeats):

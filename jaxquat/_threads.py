@@ -45,7 +45,9 @@ __all__ = ["cpu_compiler_options"]
 # be faster in the forward pass, ``grad`` and ``jvp`` alike (the module docstring's tables).
 SMALL_BATCH = 1024
 
-_PASS = "cpu-parallel-task-assigner"
+# The options themselves: XLA's pass that splits kernels between threads, switched off (shared with
+# benchmarks/simulation.py, which measures them where cpu_compiler_options does not pick them).
+ONE_THREAD = {"xla_disable_hlo_passes": "cpu-parallel-task-assigner"}
 
 
 def cpu_compiler_options(batch: int, dtype=np.float32) -> dict[str, str]:
@@ -73,7 +75,7 @@ def cpu_compiler_options(batch: int, dtype=np.float32) -> dict[str, str]:
         raise ValueError(f"argument 'batch' must be a number of bodies (an int >= 0), got {batch!r}")
     if batch > SMALL_BATCH or np.dtype(dtype).itemsize > 4 or jax.default_backend() != "cpu":
         return {}
-    return {"xla_disable_hlo_passes": _PASS}
+    return dict(ONE_THREAD)
 
 
 def at_top_level() -> bool:
