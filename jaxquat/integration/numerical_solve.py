@@ -242,14 +242,16 @@ def _in_chunks(solve: Callable, size: int, q: Array, w: Array, inertia: Array, r
     parts = [q, w, inertia] if per_body else [q, w]
     pad = count * size - n
     parts = [jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad,) + x.shape[1:])]) if pad else x for x in parts]
-    parts = [x.reshape((count, size) + x.shape[1:]) for x in parts]
+    # chunk c holds bodies c, c + count, c + 2 count, ...: the batch axis splits as (size, count),
+    # so that a batch sharded across devices stays sharded within each chunk
+    parts = [jnp.swapaxes(x.reshape((size, count) + x.shape[1:]), 0, 1) for x in parts]
 
     def one(chunk):
         return solve(chunk[0], chunk[1], chunk[2] if per_body else inertia)
 
     if remat:
         one = jax.checkpoint(one, prevent_cse=False)  # inside lax.map's scan, CSE cannot cross chunks
-    return jax.tree.map(lambda x: x.reshape((count * size,) + x.shape[2:])[:n], jax.lax.map(one, parts))
+    return jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1).reshape((count * size,) + x.shape[2:])[:n], jax.lax.map(one, parts))
 
 
 def _chunk_size(n: int, size: int) -> int:
