@@ -251,7 +251,11 @@ def _in_chunks(solve: Callable, size: int, q: Array, w: Array, inertia: Array, r
 
     if remat:
         one = jax.checkpoint(one, prevent_cse=False)  # inside lax.map's scan, CSE cannot cross chunks
-    return jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1).reshape((count * size,) + x.shape[2:])[:n], jax.lax.map(one, parts))
+
+    def unchunk(x):
+        return jnp.swapaxes(x, 0, 1).reshape((count * size,) + x.shape[2:])[:n]
+
+    return jax.tree.map(unchunk, jax.lax.map(one, parts))
 
 
 def _chunk_size(n: int, size: int) -> int:
