@@ -1226,3 +1226,34 @@ def test_a_torque_in_another_dtype_is_taken_in_the_state_s():
     for run in (fixed, adaptive):
         assert run.q.dtype == jnp.float32 and run.omega.dtype == jnp.float32
     assert_close(fixed.q[:, -1], adaptive.q[:, -1], tol=1e-5)  # measured 8.8e-7
+
+
+def test_an_interval_of_whole_steps_up_to_the_rounding_of_ts_takes_that_many_steps():
+    """The scan path splits each interval into ``ceil(interval / dt0)`` steps, up to the rounding
+    of ``ts`` in the solve's dtype: float32 0.1 is 0.10000000149, which with ``dt0=0.05`` took 3
+    steps an interval before session 69 (``LieEuler``'s float32 states 1.1e-3 from float64's).
+    ``_scan_substeps`` directly, then ``simulate``'s scan path against ``diffeqsolve``'s (an
+    adjoint given: diffrax steps by ``dt0`` itself), which agree to rounding only with the same
+    steps (first order: 2 or 3 steps differ by 1e-3 here)."""
+    import diffrax
+
+    from jaxquat.integration import numerical_solve
+
+    ts32 = np.asarray([0.0, 0.1, 0.2], np.float32).astype(np.float64)
+    solver = jq.LieEuler()
+    assert numerical_solve._scan_substeps(solver, ts32, 0.05, None, np.dtype(np.float32)) == 2
+    assert numerical_solve._scan_substeps(solver, np.asarray([0.0, 0.1, 0.2]), 0.05, None, np.dtype(np.float64)) == 2
+    assert numerical_solve._scan_substeps(solver, np.asarray([0.0, 0.1 + 1e-9]), 0.05, None, np.dtype(np.float64)) == 3
+    big = np.asarray([1000.0, 1000.1], np.float32).astype(np.float64)  # interval 0.0999756 in float32
+    assert numerical_solve._scan_substeps(solver, big, 0.05, None, np.dtype(np.float32)) == 2
+    assert numerical_solve._scan_substeps(solver, big, 0.04, None, np.dtype(np.float32)) == 3
+
+    rng = np.random.default_rng(4)
+    q0 = jq.normalize(jnp.asarray(rng.normal(size=(4, 4)), DTYPE))
+    w0 = jnp.asarray(rng.normal(size=(4, 3)), DTYPE)
+    inertia, ts = np.diag(I_DIAG).astype(DTYPE), np.asarray([0.0, 0.1, 0.2], DTYPE)
+    scan = jq.simulate(q0, w0, inertia, ts, solver=solver, dt0=0.05)
+    stepped = jq.simulate(q0, w0, inertia, ts, solver=solver, dt0=0.05, adjoint=diffrax.RecursiveCheckpointAdjoint())
+    assert int(stepped.solution.stats["num_steps"]) == 4
+    assert_close(scan.q, stepped.q, tol=1e-13 if X64 else 1e-6, what="q")
+    assert_close(scan.omega, stepped.omega, tol=1e-13 if X64 else 1e-6, what="omega")
