@@ -8,6 +8,8 @@ quaternion belongs is told so before anything is computed.
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from typing import Any
 
 import jax
@@ -134,6 +136,22 @@ def require_tqdm(function: str) -> None:
 def is_traced(x: Any) -> bool:
     """Whether ``x`` is a tracer (its values unknown: inside ``jit``, ``vmap`` or ``grad``)."""
     return isinstance(x, Tracer)
+
+
+@contextlib.contextmanager
+def compile_time_eval() -> Iterator[None]:
+    """Within it, JAX operations on concrete values return concrete arrays, also while a caller's
+    ``jit`` or ``jax.shard_map`` is tracing. ``jax.ensure_compile_time_eval`` does it under ``jit``
+    only: inside a ``shard_map`` body (jax 0.10.2) ``jnp.asarray`` of a NumPy array still returned
+    a ``ShardMapTracer``, and ``simulate`` with a NumPy inertia raised ``TypeError`` there. JAX's
+    evaluation context (``jax._src.core.eval_context``, no public API) does it in both; where a
+    JAX version lacks it, only the public context."""
+    try:
+        from jax._src.core import eval_context
+    except ImportError:  # pragma: no cover - a JAX without it
+        eval_context = contextlib.nullcontext
+    with jax.ensure_compile_time_eval(), eval_context():
+        yield
 
 
 def concrete(x: Any) -> np.ndarray | None:

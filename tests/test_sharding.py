@@ -80,3 +80,47 @@ def test_sharded_batch_matches_unsharded():
     out = subprocess.run([sys.executable, "-c", SCRIPT], capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert out.returncode == 0, out.stderr[-3000:]
     assert out.stdout.count("max difference") == 11, out.stdout
+
+
+def test_simulate_in_a_shard_map_body_takes_a_numpy_inertia_and_matches_the_plain_run():
+    """``simulate`` as the body of a ``jax.shard_map`` (a mesh of this process's first device, whose
+    axis is manual all the same): a NumPy inertia is validated there (before session 69 the
+    check's ``jnp.asarray`` returned a ``ShardMapTracer`` and ``simulate`` raised ``TypeError``),
+    and the closed form, the scan path and
+    ``diffeqsolve``'s path (an adjoint given; the scan's steps) give the plain run's values.
+    ``diffeqsolve`` needs ``check_vma=False``: diffrax's loop carries a flag that JAX's check of
+    varying axes refuses (diffrax issue #735)."""
+    import diffrax
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from jax.sharding import NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    import jaxquat as jq
+    from helpers import DTYPE, assert_close
+
+    rng = np.random.default_rng(2)
+    q0 = jq.normalize(jnp.asarray(rng.normal(size=(8, 4)), DTYPE))
+    w0 = jnp.asarray(rng.normal(size=(8, 3)), DTYPE)
+    inertia = np.diag([1.0, 2.0, 2.5]).astype(DTYPE)
+    ts = np.linspace(0.0, 0.2, 3).astype(DTYPE)
+    mesh = jax.make_mesh((1,), ("b",), devices=jax.devices()[:1])
+    sharded = [jax.device_put(x, NamedSharding(mesh, P("b"))) for x in (q0, w0)]
+    scan = dict(solver=jq.LieEuler(), dt0=0.05)
+    cases = {
+        "closed form": ({}, {}),
+        "scan": (scan, scan),
+        "diffeqsolve": (dict(scan, adjoint=diffrax.RecursiveCheckpointAdjoint()), scan),  # same steps
+    }
+    for what, (kw, plain_kw) in cases.items():
+        plain = jq.simulate(q0, w0, inertia, ts, **plain_kw)
+
+        def body(q, w, kw=kw):
+            sim = jq.simulate(q, w, inertia, ts, **kw)
+            return sim.q, sim.omega
+
+        specs = dict(in_specs=(P("b"), P("b")), out_specs=P("b"), check_vma=what != "diffeqsolve")
+        run = jax.shard_map(body, mesh=mesh, **specs)
+        for a, b in zip(run(*sharded), (plain.q, plain.omega), strict=True):
+            assert_close(a, b, tol=1e-12 if X64 else 1e-6, what=what)

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -185,7 +184,7 @@ def _is_valid_concrete(inertia: Array, rtol: float) -> np.ndarray:
     clear = _clearly_valid(inertia, rtol)
     if clear.all():
         return clear
-    with jax.ensure_compile_time_eval():  # concrete even when closed over inside a jit trace
+    with _checks.compile_time_eval():  # concrete even when closed over inside a jit trace
         return np.asarray(_arrays.compiled(is_valid_inertia, inertia, rtol=float(rtol)))
 
 
@@ -237,7 +236,7 @@ def validated(inertia: Any, name: str = "inertia") -> Array:
     array (or any value not traced) handed in under ``jit``, which ``jnp.asarray`` would turn
     into a tracer there."""
     if not _checks.is_traced(inertia):
-        with jax.ensure_compile_time_eval():
+        with _checks.compile_time_eval():
             check_inertia(inertia, name)
     return _checks.inertia(inertia, name)
 
