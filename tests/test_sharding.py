@@ -82,11 +82,11 @@ def test_sharded_batch_matches_unsharded():
     assert out.stdout.count("max difference") == 11, out.stdout
 
 
-def test_simulate_in_a_shard_map_body_takes_a_numpy_inertia_and_matches_the_plain_run():
+def test_simulate_in_a_shard_map_body_takes_a_numpy_inertia_and_matches_the_plain_run(monkeypatch):
     """``simulate`` as the body of a ``jax.shard_map`` (a mesh of this process's first device, whose
     axis is manual all the same): a NumPy inertia is validated there (before session 69 the
     check's ``jnp.asarray`` returned a ``ShardMapTracer`` and ``simulate`` raised ``TypeError``),
-    and the closed form, the scan path and
+    and the closed form, the scan path in chunks (``_SHARD_MAP_CHUNK`` set to 3 bodies of 8) and
     ``diffeqsolve``'s path (an adjoint given; the scan's steps) give the plain run's values.
     ``diffeqsolve`` needs ``check_vma=False``: diffrax's loop carries a flag that JAX's check of
     varying axes refuses (diffrax issue #735)."""
@@ -99,7 +99,9 @@ def test_simulate_in_a_shard_map_body_takes_a_numpy_inertia_and_matches_the_plai
 
     import jaxquat as jq
     from helpers import DTYPE, assert_close
+    from jaxquat.integration import numerical_solve
 
+    monkeypatch.setattr(numerical_solve, "_SHARD_MAP_CHUNK", 3)
     rng = np.random.default_rng(2)
     q0 = jq.normalize(jnp.asarray(rng.normal(size=(8, 4)), DTYPE))
     w0 = jnp.asarray(rng.normal(size=(8, 3)), DTYPE)

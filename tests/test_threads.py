@@ -39,10 +39,65 @@ def test_the_options_are_for_small_float32_batches_on_the_cpu():
     assert jq.cpu_compiler_options(10, jnp.float64) == {}
 
 
+def test_a_program_on_several_cpu_devices_keeps_each_device_on_one_thread():
+    """With ``devices`` > 1 the pass is off for any batch and dtype (each device keeps a core busy;
+    ``cpu_compiler_options``' docstring has the figures), and one device keeps the batch rule."""
+    assert jq.cpu_compiler_options(100_000, jnp.float32, devices=2) == OPTIONS
+    assert jq.cpu_compiler_options(10, jnp.float64, devices=16) == OPTIONS
+    assert jq.cpu_compiler_options(100_000, jnp.float32, devices=1) == {}
+    assert jq.cpu_compiler_options(10, jnp.float32, devices=np.int64(1)) == OPTIONS
+
+
 @pytest.mark.parametrize("bad", [-1, 2.5, "1000"])
 def test_a_batch_that_is_not_a_count_is_refused(bad):
     with pytest.raises(ValueError, match="argument 'batch'"):
         jq.cpu_compiler_options(bad)
+
+
+@pytest.mark.parametrize("bad", [0, 1.0, True, None])
+def test_a_device_count_that_is_not_a_positive_int_is_refused(bad):
+    with pytest.raises(ValueError, match="argument 'devices'"):
+        jq.cpu_compiler_options(10, devices=bad)
+
+
+def test_simulate_inside_shard_map_solves_in_the_shard_map_chunks(monkeypatch):
+    """The scan path's chunks hold ``_CHUNK_BYTES`` per component array outside a ``shard_map``
+    and ``_SHARD_MAP_CHUNK`` bodies inside one (``in_shard_map``: a manual mesh axis; a mesh of the
+    one device here, which is manual all the same). A spy on ``_in_chunks`` records the chunk size
+    and stops: nothing is solved or compiled."""
+    from jax.sharding import NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    from jaxquat import _threads
+    from jaxquat.integration import numerical_solve
+
+    class Seen(Exception):
+        pass
+
+    sizes = []
+
+    def spy(solve, size, *args, **kwargs):
+        sizes.append(size)
+        raise Seen
+
+    monkeypatch.setattr(numerical_solve, "_in_chunks", spy)
+    monkeypatch.setattr(numerical_solve, "_CHUNK_BYTES", 3 * np.dtype(DTYPE).itemsize)
+    monkeypatch.setattr(numerical_solve, "_SHARD_MAP_CHUNK", 2)
+    q0, w0 = _bodies(5)
+    mesh = jax.make_mesh((1,), ("b",))
+    inside = []
+
+    def body(q, w):
+        inside.append(_threads.in_shard_map())
+        return _final_attitudes(q, w)
+
+    assert not _threads.in_shard_map()
+    with pytest.raises(Seen):
+        _final_attitudes(q0, w0)
+    with pytest.raises(Seen):
+        sharded = [jax.device_put(x, NamedSharding(mesh, P("b"))) for x in (q0, w0)]
+        jax.shard_map(body, mesh=mesh, in_specs=(P("b"), P("b")), out_specs=P("b"))(*sharded)
+    assert inside == [True] and sizes == [3, 2], (inside, sizes)
 
 
 def test_a_program_compiled_with_the_options_splits_no_loop_and_computes_the_same_bits():

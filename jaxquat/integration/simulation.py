@@ -102,7 +102,9 @@ def simulate(
     ``dt0`` and every saved state is a step end, not an interpolant; each step is
     rematerialised in the backward pass (``jax.checkpoint``), so reverse mode stores
     one state per step. On CPU, a batch of more than 20 000 bodies in float32 (10 000 in float64) is
-    solved in chunks of at most that size, one after another, each chunk rematerialised
+    solved in chunks of at most that size (inside a ``jax.shard_map``, each device's shard in
+    chunks of 2000 bodies: docs/integrators.md, "Many bodies on a multi-core CPU"), one after
+    another, each chunk rematerialised
     whole in reverse mode: a gradient then stores one chunk's states per step, not the whole
     batch's (10^5 torque-free bodies x 1000 RKMK4 steps, one core: float32 gradient 4.10 ->
     3.64 s with a peak of 3.2 -> 1.0 GB; float64 11.8 -> 6.9 s, 5.9 -> 1.0 GB; 10^6 bodies,
