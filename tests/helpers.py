@@ -307,3 +307,22 @@ def lowered_programs():
         yield names
     finally:
         jax.monitoring.unregister_event_duration_listener(listener)
+
+
+class ChunkSeen(Exception):
+    """Raised by :func:`spy_on_chunk_sizes`' spy: the chunk size is recorded, nothing solved."""
+
+
+def spy_on_chunk_sizes(monkeypatch) -> list[int]:
+    """Replace ``numerical_solve._in_chunks`` by a spy that appends each solve's chunk size to the
+    returned list and raises :class:`ChunkSeen`: nothing is solved or compiled."""
+    from jaxquat.integration import numerical_solve
+
+    sizes: list[int] = []
+
+    def spy(solve, size, *args, **kwargs):
+        sizes.append(size)
+        raise ChunkSeen
+
+    monkeypatch.setattr(numerical_solve, "_in_chunks", spy)
+    return sizes

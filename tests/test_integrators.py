@@ -18,6 +18,8 @@ import pytest
 
 import jaxquat as jq
 from helpers import (
+    ChunkSeen,
+    spy_on_chunk_sizes,
     DTYPE,
     X64,
     XLA_CHOOSES_EMITTERS,
@@ -373,7 +375,7 @@ def test_the_adaptive_path_s_default_adjoint_keeps_64_checkpoints_per_body(monke
     q0, w0, inertia = jq.identity((2,), DTYPE), jnp.ones((2, 3), DTYPE), jnp.diag(jnp.asarray(I_DIAG, DTYPE))
     ts = jnp.asarray([0.0, 0.5], DTYPE)
     for adjoint in (None, diffrax.RecursiveCheckpointAdjoint(checkpoints=5)):
-        with pytest.raises(Seen):
+        with pytest.raises(ChunkSeen):
             jq.simulate(q0, w0, inertia, ts, torque=_constant_torque, args=jnp.asarray(0.3, DTYPE), adjoint=adjoint)
     default, given = seen
     assert isinstance(default, diffrax.RecursiveCheckpointAdjoint) and default.checkpoints == 64
@@ -813,20 +815,11 @@ def test_a_solve_with_a_progress_bar_takes_the_batch_whole(monkeypatch):
     ``_in_chunks`` records the chunk size and stops: nothing is solved or compiled."""
     from jaxquat.integration import numerical_solve
 
-    class Seen(Exception):
-        pass
-
-    sizes = []
-
-    def spy(solve, size, *args, **kwargs):
-        sizes.append(size)
-        raise Seen
-
-    monkeypatch.setattr(numerical_solve, "_in_chunks", spy)
+    sizes = spy_on_chunk_sizes(monkeypatch)
     monkeypatch.setattr(numerical_solve, "_ADAPTIVE_CHUNK", 2)
     q0, w0, inertia = jq.identity((5,), DTYPE), jnp.ones((5, 3), DTYPE), jnp.diag(jnp.asarray(I_DIAG, DTYPE))
     for progress in (False, True):
-        with pytest.raises(Seen):
+        with pytest.raises(ChunkSeen):
             jq.simulate(q0, w0, inertia, np.linspace(0.0, 1.0, 3), torque=_spin_torque, args=0.3, progress=progress)
     assert sizes[0] == 2 and sizes[1] >= 5, sizes
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import jaxquat as jq
-from helpers import DTYPE
+from helpers import DTYPE, ChunkSeen, spy_on_chunk_sizes
 
 OPTIONS = {"xla_disable_hlo_passes": "cpu-parallel-task-assigner"}
 I_DIAG = np.diag([1.0, 2.0, 3.0])
@@ -71,16 +71,7 @@ def test_simulate_inside_shard_map_solves_in_the_shard_map_chunks(monkeypatch):
     from jaxquat import _threads
     from jaxquat.integration import numerical_solve
 
-    class Seen(Exception):
-        pass
-
-    sizes = []
-
-    def spy(solve, size, *args, **kwargs):
-        sizes.append(size)
-        raise Seen
-
-    monkeypatch.setattr(numerical_solve, "_in_chunks", spy)
+    sizes = spy_on_chunk_sizes(monkeypatch)
     monkeypatch.setattr(numerical_solve, "_CHUNK_BYTES", 3 * np.dtype(DTYPE).itemsize)
     monkeypatch.setattr(numerical_solve, "_SHARD_MAP_CHUNK", 2)
     q0, w0 = _bodies(5)
@@ -92,9 +83,9 @@ def test_simulate_inside_shard_map_solves_in_the_shard_map_chunks(monkeypatch):
         return _final_attitudes(q, w)
 
     assert not _threads.in_shard_map()
-    with pytest.raises(Seen):
+    with pytest.raises(ChunkSeen):
         _final_attitudes(q0, w0)
-    with pytest.raises(Seen):
+    with pytest.raises(ChunkSeen):
         sharded = [jax.device_put(x, NamedSharding(mesh, P("b"))) for x in (q0, w0)]
         jax.shard_map(body, mesh=mesh, in_specs=(P("b"), P("b")), out_specs=P("b"))(*sharded)
     assert inside == [True] and sizes == [3, 2], (inside, sizes)
