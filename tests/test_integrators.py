@@ -18,15 +18,15 @@ import pytest
 
 import jaxquat as jq
 from helpers import (
-    ChunkSeen,
-    spy_on_chunk_sizes,
     DTYPE,
     X64,
     XLA_CHOOSES_EMITTERS,
+    ChunkSeen,
     assert_close,
     central_difference_jacobian,
     dop853_reference,
     lowered_programs,
+    spy_on_chunk_sizes,
     xla_fuses_multiply_add,
 )
 
@@ -375,7 +375,7 @@ def test_the_adaptive_path_s_default_adjoint_keeps_64_checkpoints_per_body(monke
     q0, w0, inertia = jq.identity((2,), DTYPE), jnp.ones((2, 3), DTYPE), jnp.diag(jnp.asarray(I_DIAG, DTYPE))
     ts = jnp.asarray([0.0, 0.5], DTYPE)
     for adjoint in (None, diffrax.RecursiveCheckpointAdjoint(checkpoints=5)):
-        with pytest.raises(ChunkSeen):
+        with pytest.raises(Seen):
             jq.simulate(q0, w0, inertia, ts, torque=_constant_torque, args=jnp.asarray(0.3, DTYPE), adjoint=adjoint)
     default, given = seen
     assert isinstance(default, diffrax.RecursiveCheckpointAdjoint) and default.checkpoints == 64

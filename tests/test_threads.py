@@ -85,8 +85,8 @@ def test_simulate_inside_shard_map_solves_in_the_shard_map_chunks(monkeypatch):
     assert not _threads.in_shard_map()
     with pytest.raises(ChunkSeen):
         _final_attitudes(q0, w0)
+    sharded = [jax.device_put(x, NamedSharding(mesh, P("b"))) for x in (q0, w0)]
     with pytest.raises(ChunkSeen):
-        sharded = [jax.device_put(x, NamedSharding(mesh, P("b"))) for x in (q0, w0)]
         jax.shard_map(body, mesh=mesh, in_specs=(P("b"), P("b")), out_specs=P("b"))(*sharded)
     assert inside == [True] and sizes == [3, 2], (inside, sizes)
 
