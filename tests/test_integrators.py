@@ -27,7 +27,6 @@ from helpers import (
     dop853_reference,
     lowered_programs,
     spy_on_chunk_sizes,
-    xla_fuses_multiply_add,
 )
 
 I_DIAG = np.array([1.0, 2.0, 3.0])
@@ -486,14 +485,17 @@ def test_the_scan_path_s_stage_exponentials_choose_their_branch_by_the_batch(fas
     directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
     w0 = jnp.asarray(directions * np.asarray([0.2, 0.5, 0.8, fastest])[:, None], DTYPE)
     got, want = _one_step_and_gradient(w0, q0, "components"), _one_step_and_gradient(w0, q0, "rows")
-    # measured (the gradient's entries up to 5): 5.6e-17 and 1.8e-15 (float64), 6.0e-8 and 2.9e-6
-    # (float32); with the series taken when any body's angle is small, 1.9e-4 and 3e46 or NaN.
-    # Float32 without fused multiply-adds (XLA limited to AVX, session 58): 2.5e-5 and 7.7e-4. The
-    # two layouts then round differently, and this stiff step (gain 50, angles up to 5) amplifies
-    # the rounding: each is 2.8e-5 to 6.6e-5 from the float64 step, with FMA or without.
-    tol32 = (1e-6, 5e-5) if xla_fuses_multiply_add() else (1e-4, 3e-3)
-    assert_close(got[0], want[0], tol=1e-13 if X64 else tol32[0], what="attitudes")
-    assert_close(got[1], want[1], tol=1e-12 if X64 else tol32[1], what="gradient in w0")
+    # measured (the gradient's entries up to 5): 5.6e-17 and 1.8e-15 (float64); with the series
+    # taken when any body's angle is small, 1.9e-4 and 3e46 or NaN. Float32: this stiff step (gain
+    # 50, angles up to 5) amplifies rounding, each layout is 2.8e-5 to 6.6e-5 from the float64 step
+    # in the attitudes (1.2e-3 to 2.0e-3 in the gradient), and how close the two layouts land is
+    # the machine's: 6.0e-8 and 2.9e-6 on AVX-512 CPUs, 2.5e-5 and 7.7e-4 with XLA limited to AVX
+    # (session 58) and on a 2-core AMD EPYC with AVX2 and FMA but no AVX-512 (session 70, the
+    # suite's emitters; 6.0e-8 and 1.4e-6 there under XLA's defaults). Until session 70 the bound
+    # was 1e-6 and 5e-5 wherever XLA fuses multiply-adds, a verdict that moved with the CPU; the
+    # float64 bounds carry the check, and in float32 the gradient's still catches the defect.
+    assert_close(got[0], want[0], tol=1e-13 if X64 else 1e-4, what="attitudes")
+    assert_close(got[1], want[1], tol=1e-12 if X64 else 3e-3, what="gradient in w0")
 
 
 def test_the_lie_solvers_scan_path_is_the_struct_of_arrays_step(monkeypatch):
