@@ -105,6 +105,24 @@ def in_shard_map() -> bool:
     return bool(getattr(get(), "manual_axes", ()))
 
 
+def split_across_devices(x) -> bool:
+    """Whether the type of ``x`` says it is split between devices: some axis sharded over a mesh
+    axis of more than one device that is not manual (``jax.sharding.AxisType.Explicit``, the
+    default of ``jax.make_mesh``; inside a ``jax.shard_map`` each device's shard is whole, and
+    under ``AxisType.Auto`` axes the type does not say, so both answer ``False``). Read from
+    ``jax.typeof(x).sharding``; a JAX without it answers ``False``."""
+    typeof = getattr(jax, "typeof", None)
+    if typeof is None:  # pragma: no cover - a JAX before 0.6
+        return False
+    sharding = getattr(typeof(x), "sharding", None)
+    spec, mesh = getattr(sharding, "spec", None), getattr(sharding, "mesh", None)
+    if spec is None or mesh is None:
+        return False
+    manual = set(getattr(mesh, "manual_axes", ()))
+    names = [n for entry in spec if entry is not None for n in (entry if isinstance(entry, tuple) else (entry,))]
+    return any(mesh.shape[n] > 1 and n not in manual for n in names)
+
+
 def at_top_level() -> bool:
     """Whether JAX is evaluating eagerly here, outside any ``jit``, ``vmap`` or ``grad``: where a
     ``jax.jit`` with ``compiler_options`` may be called (JAX raises ``ValueError`` for one staged

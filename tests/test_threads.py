@@ -91,6 +91,35 @@ def test_simulate_inside_shard_map_solves_in_the_shard_map_chunks(monkeypatch):
     assert inside == [True] and sizes == [3, 2], (inside, sizes)
 
 
+def test_an_array_is_split_across_devices_only_on_a_mesh_axis_of_several_devices_outside_shard_map():
+    """``split_across_devices`` reads the type: a plain array, one sharded over a mesh axis of one
+    device, and a shard inside a ``shard_map`` (its axis manual) are not split. Split arrays (an
+    Explicit mesh of four devices: True; an Auto one, whose type does not say: False) are checked
+    in ``tests/test_sharding.py``'s subprocess, which has the devices."""
+    from jax.sharding import NamedSharding
+    from jax.sharding import PartitionSpec as P
+
+    from jaxquat._threads import split_across_devices
+
+    mesh = jax.make_mesh((1,), ("b",))
+    x = jnp.zeros((4, 3), DTYPE)
+    sharded = jax.device_put(x, NamedSharding(mesh, P("b")))
+    seen = {}
+
+    def note(name):
+        def body(y):
+            seen[name] = split_across_devices(y)
+            return y
+
+        return body
+
+    jax.jit(note("plain"))(x)
+    jax.jit(note("one device"))(sharded)
+    jax.jit(jax.shard_map(note("shard_map"), mesh=mesh, in_specs=P("b"), out_specs=P("b")))(sharded)
+    assert seen == {"plain": False, "one device": False, "shard_map": False}, seen
+    assert jax.typeof(sharded).sharding.spec[0] == "b"  # the sharding is in the type: the check can fail
+
+
 def test_a_program_compiled_with_the_options_splits_no_loop_and_computes_the_same_bits():
     """The scan path's gradient for 64 bodies (``DTYPE``), compiled with and without the pass: the
     same values to the bit, and with the options no kernel carries XLA's partition of its loop
