@@ -89,6 +89,7 @@ BENCH_ENV := GLIBC_TUNABLES=glibc.malloc.hugetlb=1:glibc.malloc.mmap_threshold=1
 bench: $(BENCH_STAMP)
 	$(BENCH_ENV) $(PY) benchmarks/ops.py --write docs/benchmarks.md
 	$(BENCH_ENV) $(PY) benchmarks/simulation.py --write docs/benchmarks.md
+	$(BENCH_ENV) $(PY) benchmarks/batch.py --write docs/benchmarks.md
 	$(BENCH_ENV) $(PY) benchmarks/estimation.py --write docs/benchmarks.md
 	$(BENCH_ENV) $(PY) benchmarks/optimal_control.py --write docs/benchmarks.md
 
