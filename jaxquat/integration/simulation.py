@@ -10,6 +10,7 @@ import numpy as np
 from jax import Array
 
 from .. import _arrays, _checks
+from .._threads import split_across_devices
 from ..mechanics.inertia import validated
 from ..mechanics.torque_free import propagate
 from . import principal_frame
@@ -108,7 +109,11 @@ def simulate(
     whole in reverse mode: a gradient then stores one chunk's states per step, not the whole
     batch's (10^5 torque-free bodies x 1000 RKMK4 steps, one core: float32 gradient 4.10 ->
     3.64 s with a peak of 3.2 -> 1.0 GB; float64 11.8 -> 6.9 s, 5.9 -> 1.0 GB; 10^6 bodies,
-    which needed 28 GB, fit). ``solution`` is then ``None``.
+    which needed 28 GB, fit). ``solution`` is then ``None``. A batch sharded over a mesh of
+    several devices runs on this path as one SPMD program, each step's branches chosen per
+    element; on an Explicit mesh (``jax.make_mesh``'s default) the closed form and the
+    ``diffeqsolve`` paths refuse it with a ``ValueError`` (JAX's explicit sharding fails inside
+    them): run those in a ``jax.shard_map`` instead, or shard over ``AxisType.Auto`` axes.
 
     Args:
         q0: initial attitude ``(..., 4)``, unit, scalar first (body to space).
@@ -164,6 +169,7 @@ def simulate(
     if solver is None and torque is None and dt0 is None and adjoint is None and not progress:
         # The default torque-free path, the closed form (EulerPoinsotSplit's exact flow), decided
         # here without importing diffrax and equinox (numerical_solve's docstring).
+        _refuse_split_batch("closed form (the default torque-free path)", q0, omega0)
         return _arrays.compiled(_exact_simulate, q0, omega0, tensor, ts, principal=not diagonal_given)
     from . import numerical_solve  # diffrax and equinox, on the first numerical solve
 
@@ -183,7 +189,10 @@ def simulate(
         diagonal_given,
     )
     if cfg.exact and adjoint is None and not progress:
+        _refuse_split_batch("closed form (an exact splitting's flow)", q0, omega0)
         return _arrays.compiled(_exact_simulate, q0, omega0, tensor, ts, principal=cfg.principal)
+    if cfg.substeps is None:
+        _refuse_split_batch("diffeqsolve path (an adaptive solver, an adjoint or a progress bar)", q0, omega0)
     try:
         return Simulation(*numerical_solve.solve(cfg, q0, omega0, inertia, shared_inertia, ts, args, dt0))
     except TypeError as err:  # jvp of the compiled solve meets diffrax's custom_vjp adjoint
@@ -193,6 +202,21 @@ def simulate(
             "forward-mode autodiff (jax.jvp, jax.jacfwd) through simulate's diffeqsolve path needs "
             "adjoint=diffrax.ForwardMode(); the default RecursiveCheckpointAdjoint supports reverse mode only"
         ) from err
+
+
+def _refuse_split_batch(path: str, q0: Array, omega0: Array) -> None:
+    """A clear error where a batch split between devices by its type (an Explicit mesh,
+    :func:`jaxquat._threads.split_across_devices`) reaches a path that JAX's explicit sharding
+    fails inside (session 70, jax 0.10.2: the closed form's reshapes of sharded axes, diffrax's
+    term check and its loop under ``vmap`` raised ``ShardingTypeError`` or ``ValueError`` from deep
+    in the solve). The scan path takes such a batch (``tests/test_sharding.py``)."""
+    if split_across_devices(q0) or split_across_devices(omega0):
+        raise ValueError(
+            f"simulate's {path} does not take a batch split between devices by an Explicit mesh "
+            "(arguments 'q0', 'omega0'): run simulate as the body of jax.shard_map(..., check_vma=False) "
+            "over the mesh, shard over AxisType.Auto axes, or take the scan path (a fixed-step solver "
+            "with dt0, no adjoint); docs/integrators.md, 'Many bodies on a multi-core CPU'"
+        )
 
 
 def _exact_simulate(q0, omega0, inertia, ts, principal: bool) -> Simulation:
