@@ -87,9 +87,11 @@ for kind in (AxisType.Auto, AxisType.Explicit):
     jax.jit(lambda x, kind=kind: split.setdefault(str(kind), split_across_devices(x)) and x)(x)
 print("split across devices:", split)
 
-# The closed form and diffeqsolve's paths fail inside under JAX's explicit sharding (a reshape of a
-# sharded axis; diffrax's term check and its loop under vmap): simulate refuses such a batch there
-# with the ways out, and runs it on an Auto mesh, with the unsharded run's values.
+# JAX's explicit sharding fails inside the closed form (a reshape of a sharded axis) and inside
+# diffeqsolve's paths (diffrax's term check, its loop under vmap). On an Explicit mesh simulate runs
+# the closed form in a shard_map of its own (values and, under jit, the gradient of the unsharded
+# run; the result stays split) and refuses the adaptive path with the ways out; an Auto mesh runs
+# both, with the unsharded run's values.
 inertia = np.diag([1.0, 2.0, 2.5]).astype(np.float32)
 for label, kw in (("closed form", {}), ("adaptive", {"solver": jq.RKMK45()})):
     plain_q = jq.simulate(args[0], args[1], inertia, ts, **kw).q
@@ -104,7 +106,17 @@ for label, kw in (("closed form", {}), ("adaptive", {"solver": jq.RKMK45()})):
             continue
         diff = float(jnp.max(jnp.abs(got - plain_q)))
         assert diff <= 1e-6, (label, kind, diff)
+        assert len(got.sharding.device_set) == 4 and not got.sharding.is_fully_replicated, (label, kind, got.sharding)
         print("ran", label, kind)
+
+def closed_form_cost(w, q):
+    return jnp.sum(jq.simulate(q, w, inertia, ts).q ** 3)
+
+g_plain = jax.jit(jax.grad(closed_form_cost))(args[1], args[0])
+g_split = jax.jit(jax.grad(closed_form_cost))(w, q)  # the Explicit mesh's, the loop's last
+diff = float(jnp.max(jnp.abs(g_split - g_plain)))
+assert diff <= 1e-5 * float(jnp.max(jnp.abs(g_plain))), diff
+print("closed form gradient on the Explicit mesh, difference", diff)
 """
 
 
@@ -115,8 +127,9 @@ def test_sharded_batch_matches_unsharded():
     assert out.stdout.count("max difference") == 11, out.stdout
     assert "all-reduce in the Explicit gradient: 0" in out.stdout, out.stdout
     assert "split across devices: {'AxisType.Auto': False, 'AxisType.Explicit': True}" in out.stdout, out.stdout
-    for label in ("closed form", "adaptive"):
-        assert f"ran {label} AxisType.Auto" in out.stdout and f"refused {label} AxisType.Explicit" in out.stdout
+    for line in ("ran closed form AxisType.Auto", "ran closed form AxisType.Explicit", "ran adaptive AxisType.Auto"):
+        assert line in out.stdout, out.stdout
+    assert "refused adaptive AxisType.Explicit" in out.stdout and "closed form gradient on" in out.stdout, out.stdout
 
 
 def test_simulate_in_a_shard_map_body_takes_a_numpy_inertia_and_matches_the_plain_run(monkeypatch):

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, NamedTuple
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jax.sharding import NamedSharding, PartitionSpec
 
 from .. import _arrays, _checks
 from .._threads import split_across_devices
@@ -111,9 +114,10 @@ def simulate(
     3.64 s with a peak of 3.2 -> 1.0 GB; float64 11.8 -> 6.9 s, 5.9 -> 1.0 GB; 10^6 bodies,
     which needed 28 GB, fit). ``solution`` is then ``None``. A batch sharded over a mesh of
     several devices runs on this path as one SPMD program, each step's branches chosen per
-    element; on an Explicit mesh (``jax.make_mesh``'s default) the closed form and the
-    ``diffeqsolve`` paths refuse it with a ``ValueError`` (JAX's explicit sharding fails inside
-    them): run those in a ``jax.shard_map`` instead, or shard over ``AxisType.Auto`` axes.
+    element. On an Explicit mesh (``jax.make_mesh``'s default) the closed form runs each
+    device's shard in a ``jax.shard_map`` of its own, and the ``diffeqsolve`` paths refuse the
+    batch with a ``ValueError`` (JAX's explicit sharding fails inside diffrax's loop): run those
+    in a ``jax.shard_map`` (``check_vma=False``), or shard over ``AxisType.Auto`` axes.
 
     Args:
         q0: initial attitude ``(..., 4)``, unit, scalar first (body to space).
@@ -169,8 +173,7 @@ def simulate(
     if solver is None and torque is None and dt0 is None and adjoint is None and not progress:
         # The default torque-free path, the closed form (EulerPoinsotSplit's exact flow), decided
         # here without importing diffrax and equinox (numerical_solve's docstring).
-        _refuse_split_batch("closed form (the default torque-free path)", q0, omega0)
-        return _arrays.compiled(_exact_simulate, q0, omega0, tensor, ts, principal=not diagonal_given)
+        return _closed_form(q0, omega0, tensor, ts, principal=not diagonal_given)
     from . import numerical_solve  # diffrax and equinox, on the first numerical solve
 
     cfg = numerical_solve.configure(
@@ -189,8 +192,7 @@ def simulate(
         diagonal_given,
     )
     if cfg.exact and adjoint is None and not progress:
-        _refuse_split_batch("closed form (an exact splitting's flow)", q0, omega0)
-        return _arrays.compiled(_exact_simulate, q0, omega0, tensor, ts, principal=cfg.principal)
+        return _closed_form(q0, omega0, tensor, ts, principal=cfg.principal)
     if cfg.substeps is None:
         _refuse_split_batch("diffeqsolve path (an adaptive solver, an adjoint or a progress bar)", q0, omega0)
     try:
@@ -204,18 +206,63 @@ def simulate(
         ) from err
 
 
+def _closed_form(q0: Array, omega0: Array, tensor: Array, ts: Array, principal: bool) -> Simulation:
+    """:func:`_exact_simulate`, compiled; a batch split between devices by an Explicit mesh
+    (:func:`jaxquat._threads.split_across_devices`) as the body of a ``jax.shard_map`` over the
+    batch's mesh axes. JAX's explicit sharding fails inside the closed form (jax 0.10.2: a
+    reshape of a sharded axis raised ``ShardingTypeError``), and each body's flow is its own, so
+    each device solves its shard. ``check_vma=False``: the cotangents of the closed form's custom
+    derivative rules carry no varying mesh axes, which JAX's check refuses in reverse mode."""
+    split = [x for x in (q0, omega0) if split_across_devices(x)]
+    if not split:
+        return _arrays.compiled(_exact_simulate, q0, omega0, tensor, ts, principal=principal)
+    batch = jnp.broadcast_shapes(q0.shape[:-1], omega0.shape[:-1])
+    if not any(x.shape[:-1] == batch for x in split):  # only a smaller, broadcast argument is split
+        _refuse_split_batch("closed form (a batch split only in a broadcast argument)", q0, omega0)
+    return _closed_form_in_shards(q0, omega0, tensor, ts, principal=principal)
+
+
+@functools.partial(jax.jit, static_argnames="principal")
+def _closed_form_in_shards(q0: Array, omega0: Array, tensor: Array, ts: Array, principal: bool) -> Simulation:
+    """:func:`_closed_form`'s ``shard_map``, compiled (an eager call places the shared tensor
+    and ``ts`` on the mesh inside the program)."""
+    batch = jnp.broadcast_shapes(q0.shape[:-1], omega0.shape[:-1])
+    ref = next(x for x in (q0, omega0) if split_across_devices(x) and x.shape[:-1] == batch)
+    sharding = jax.typeof(ref).sharding
+    b = tuple(sharding.spec)[:-1]
+
+    def placed(x: Array, spec: tuple) -> Array:
+        return jax.sharding.reshard(x, NamedSharding(sharding.mesh, PartitionSpec(*spec)))
+
+    q0, omega0 = (placed(jnp.broadcast_to(x, batch + x.shape[-1:]), (*b, None)) for x in (q0, omega0))
+    tensor_spec = (*b, None, None) if tensor.ndim > 2 else ()
+    if tensor.ndim > 2:
+        tensor = jnp.broadcast_to(tensor, batch + tensor.shape[-2:])
+    tensor, ts = placed(tensor, tensor_spec), placed(ts, ())
+    out: Any = PartitionSpec(*b, None, None)  # the spec of q and omega (a Simulation's leaves)
+    body = jax.shard_map(
+        functools.partial(_exact_simulate, principal=principal),
+        mesh=sharding.mesh,
+        in_specs=(PartitionSpec(*b, None), PartitionSpec(*b, None), PartitionSpec(*tensor_spec), PartitionSpec()),
+        out_specs=Simulation(out, out, None),
+        check_vma=False,
+    )
+    return body(q0, omega0, tensor, ts)
+
+
 def _refuse_split_batch(path: str, q0: Array, omega0: Array) -> None:
     """A clear error where a batch split between devices by its type (an Explicit mesh,
     :func:`jaxquat._threads.split_across_devices`) reaches a path that JAX's explicit sharding
-    fails inside (session 70, jax 0.10.2: the closed form's reshapes of sharded axes, diffrax's
-    term check and its loop under ``vmap`` raised ``ShardingTypeError`` or ``ValueError`` from deep
-    in the solve). The scan path takes such a batch (``tests/test_sharding.py``)."""
+    fails inside (session 70, jax 0.10.2: diffrax's term check and its loop under ``vmap`` raised
+    ``ShardingTypeError`` or ``ValueError`` from deep in the solve). The scan path and the closed
+    form (:func:`_closed_form`) take such a batch (``tests/test_sharding.py``)."""
     if split_across_devices(q0) or split_across_devices(omega0):
         raise ValueError(
             f"simulate's {path} does not take a batch split between devices by an Explicit mesh "
             "(arguments 'q0', 'omega0'): run simulate as the body of jax.shard_map(..., check_vma=False) "
             "over the mesh, shard over AxisType.Auto axes, or take the scan path (a fixed-step solver "
-            "with dt0, no adjoint); docs/integrators.md, 'Many bodies on a multi-core CPU'"
+            "with dt0, no adjoint) or the closed form (torque-free, no solver); docs/integrators.md, "
+            "'Many bodies on a multi-core CPU'"
         )
 
 
