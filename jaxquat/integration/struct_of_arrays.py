@@ -39,7 +39,6 @@ import numpy as np
 from jax import Array
 
 from .. import _arrays, _fusion, _quaternion, _rates, _rotation, _safe, _trig
-from .._threads import split_across_devices
 from .fixed_step import scan_steps
 
 Comps = tuple[Array, ...]
@@ -134,16 +133,8 @@ def exp(theta: Comps, branches: str = "derivatives by batch") -> Comps:
     ``branches`` (:func:`jaxquat._rotation.exp_components`): a step's ``theta`` is nearly always
     below the series' switch, so by default the derivatives skip the direct branch when the whole
     batch can (a ``lax.cond``). A step compiled as a few loops on CPU chooses per exponential
-    (:func:`_branches`). A batch split between devices in one SPMD program (an explicitly
-    sharded ``jit``: :func:`jaxquat._threads.split_across_devices`) chooses per element: there a
-    batch-wide choice is a cross-device ``all-reduce`` at every exponential of every step. 10^5
-    torque-free float32 bodies x 1000 RKMK4 steps on 2 CPU devices of a 2-core AMD EPYC, ``jit``
-    of the sharded batch, min of 3 (session 70): float32 gradient 5.90 -> 2.50-2.54 s, forward
-    541 -> 546-594 ms; float64 10.89 -> 5.07 s, 1237 -> 1222 ms (a ``shard_map``, where each
-    device chooses for its own shard: 2.06 s and 604 ms, 4.57 s and 1094 ms, the same hour).
-    Under ``AxisType.Auto`` axes the type does not say, and the choice stays batch-wide."""
-    if branches != "per element" and split_across_devices(theta[0]):
-        branches = "per element"
+    (:func:`_branches`); a batch split between devices chooses per element all the same
+    (:func:`jaxquat._safe._mostly_small_parts`)."""
     return tuple(_rotation.exp_components(theta, branches))
 
 
