@@ -213,22 +213,24 @@ def _closed_form(q0: Array, omega0: Array, tensor: Array, ts: Array, principal: 
     reshape of a sharded axis raised ``ShardingTypeError``), and each body's flow is its own, so
     each device solves its shard. ``check_vma=False``: the cotangents of the closed form's custom
     derivative rules carry no varying mesh axes, which JAX's check refuses in reverse mode."""
-    split = [x for x in (q0, omega0) if split_across_devices(x)]
-    if not split:
+    if not (split_across_devices(q0) or split_across_devices(omega0)):
         return _arrays.compiled(_exact_simulate, q0, omega0, tensor, ts, principal=principal)
     batch = jnp.broadcast_shapes(q0.shape[:-1], omega0.shape[:-1])
-    if not any(x.shape[:-1] == batch for x in split):  # only a smaller, broadcast argument is split
+    whole = [i for i, x in enumerate((q0, omega0)) if x.shape[:-1] == batch and split_across_devices(x)]
+    if not whole:  # only a smaller, broadcast argument is split
         _refuse_split_batch("closed form (a batch split only in a broadcast argument)", q0, omega0)
-    return _closed_form_in_shards(q0, omega0, tensor, ts, principal=principal)
+    return _closed_form_in_shards(q0, omega0, tensor, ts, principal=principal, split=whole[0])
 
 
-@functools.partial(jax.jit, static_argnames="principal")
-def _closed_form_in_shards(q0: Array, omega0: Array, tensor: Array, ts: Array, principal: bool) -> Simulation:
+@functools.partial(jax.jit, static_argnames=("principal", "split"))
+def _closed_form_in_shards(
+    q0: Array, omega0: Array, tensor: Array, ts: Array, principal: bool, split: int
+) -> Simulation:
     """:func:`_closed_form`'s ``shard_map``, compiled (an eager call places the shared tensor
-    and ``ts`` on the mesh inside the program)."""
+    and ``ts`` on the mesh inside the program); ``split``: which of ``(q0, omega0)`` holds the
+    whole batch, split between devices, whose sharding every argument takes."""
     batch = jnp.broadcast_shapes(q0.shape[:-1], omega0.shape[:-1])
-    ref = next(x for x in (q0, omega0) if split_across_devices(x) and x.shape[:-1] == batch)
-    sharding = jax.typeof(ref).sharding
+    sharding = jax.typeof((q0, omega0)[split]).sharding
     b = tuple(sharding.spec)[:-1]
 
     def placed(x: Array, spec: tuple) -> Array:
