@@ -31,11 +31,10 @@ import time
 
 import jax
 
-if __name__ == "__main__":  # the devices before JAX starts its CPU backend
-    _devices = next((int(a.split("=")[1]) for a in sys.argv if a.startswith("--devices=")), os.cpu_count() or 1)
-    if "--devices" in sys.argv:
-        _devices = int(sys.argv[sys.argv.index("--devices") + 1])
-    jax.config.update("jax_num_cpu_devices", _devices)
+if __name__ == "__main__":  # the devices before JAX starts its CPU backend (main() parses the rest)
+    _early = argparse.ArgumentParser(add_help=False)
+    _early.add_argument("--devices", type=int)
+    jax.config.update("jax_num_cpu_devices", _early.parse_known_args()[0].devices or os.cpu_count() or 1)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
