@@ -92,25 +92,32 @@ print("split across devices:", split)
 
 # JAX's explicit sharding fails inside the closed form (a reshape of a sharded axis) and inside
 # diffeqsolve's paths (diffrax's term check, its loop under vmap). On an Explicit mesh simulate runs
-# the closed form in a shard_map of its own (values and, under jit, the gradient of the unsharded
-# run; the result stays split) and refuses the adaptive path with the ways out; an Auto mesh runs
-# both, with the unsharded run's values.
+# the closed form and the adaptive path in a shard_map of their own (the unsharded run's values; the
+# result stays split; the closed form's gradient under jit below); an Auto mesh runs both. The
+# adaptive path refuses derivatives there (diffrax's adjoint fails inside a shard_map), and the
+# fixed-step diffeqsolve path (an adjoint given) the split batch, each with the ways out.
 inertia = np.diag([1.0, 2.0, 2.5]).astype(np.float32)
 for label, kw in (("closed form", {}), ("adaptive", {"solver": jq.RKMK45()})):
     plain_q = jq.simulate(args[0], args[1], inertia, ts, **kw).q
     for kind in (AxisType.Auto, AxisType.Explicit):
         mesh = jax.make_mesh((4,), ("bodies",), axis_types=(kind,))
         q, w = (jax.device_put(a, NamedSharding(mesh, PartitionSpec("bodies"))) for a in args[:2])
-        try:
-            got = jq.simulate(q, w, inertia, ts, **kw).q
-        except ValueError as err:
-            assert "jax.shard_map" in str(err) and "'q0'" in str(err), err
-            print("refused", label, kind)
-            continue
+        got = jq.simulate(q, w, inertia, ts, **kw).q
         diff = float(jnp.max(jnp.abs(got - plain_q)))
         assert diff <= 1e-6, (label, kind, diff)
         assert len(got.sharding.device_set) == 4 and not got.sharding.is_fully_replicated, (label, kind, got.sharding)
         print("ran", label, kind)
+try:
+    jax.grad(lambda w: jnp.sum(jq.simulate(q, w, inertia, ts, solver=jq.RKMK45()).q))(w)
+except ValueError as err:
+    assert "gives values but no derivatives" in str(err), err
+    print("refused adaptive derivatives")
+import diffrax
+try:
+    jq.simulate(q, w, inertia, ts, solver=jq.RKMK4(), dt0=0.1, adjoint=diffrax.RecursiveCheckpointAdjoint())
+except ValueError as err:
+    assert "jax.shard_map" in str(err) and "'q0'" in str(err), err
+    print("refused fixed-step adjoint")
 
 def closed_form_cost(w, q):
     return jnp.sum(jq.simulate(q, w, inertia, ts).q ** 3)
@@ -130,9 +137,11 @@ def test_sharded_batch_matches_unsharded():
     assert out.stdout.count("max difference") == 11, out.stdout
     assert "all-reduce in the Explicit gradient: 0" in out.stdout, out.stdout
     assert "split across devices: {'AxisType.Auto': False, 'AxisType.Explicit': True}" in out.stdout, out.stdout
-    for line in ("ran closed form AxisType.Auto", "ran closed form AxisType.Explicit", "ran adaptive AxisType.Auto"):
+    for label in ("closed form", "adaptive"):
+        for kind in ("AxisType.Auto", "AxisType.Explicit"):
+            assert f"ran {label} {kind}" in out.stdout, out.stdout
+    for line in ("refused adaptive derivatives", "refused fixed-step adjoint", "closed form gradient on"):
         assert line in out.stdout, out.stdout
-    assert "refused adaptive AxisType.Explicit" in out.stdout and "closed form gradient on" in out.stdout, out.stdout
 
 
 def test_simulate_in_a_shard_map_body_takes_a_numpy_inertia_and_matches_the_plain_run(monkeypatch):

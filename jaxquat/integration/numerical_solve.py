@@ -428,6 +428,13 @@ def _component_tableau(solver) -> struct_of_arrays.Tableau | None:
     return None
 
 
+def solves_body_by_body(cfg: Config) -> bool:
+    """Whether ``diffeqsolve``'s path solves each body of a batch on its own (``vmap``: an
+    adaptive solver, each body its own steps), so that every leaf of the solution has the
+    (flattened) batch axis first; with fixed steps the batch is one stacked solve."""
+    return _has_error_estimate(cfg.solver)
+
+
 def _has_error_estimate(solver) -> bool:
     """Whether a solver returns an error estimate (so a PID controller can adapt its step)."""
     return isinstance(solver, diffrax.AbstractAdaptiveSolver)

@@ -115,9 +115,12 @@ def simulate(
     which needed 28 GB, fit). ``solution`` is then ``None``. A batch sharded over a mesh of
     several devices runs on this path as one SPMD program, each step's branches chosen per
     element. On an Explicit mesh (``jax.make_mesh``'s default) the closed form runs each
-    device's shard in a ``jax.shard_map`` of its own, and the ``diffeqsolve`` paths refuse the
-    batch with a ``ValueError`` (JAX's explicit sharding fails inside diffrax's loop): run those
-    in a ``jax.shard_map`` (``check_vma=False``), or shard over ``AxisType.Auto`` axes.
+    device's shard in a ``jax.shard_map`` of its own, and so does the adaptive path for a batch
+    with one axis (values only: its derivatives raise ``ValueError``, as diffrax's adjoint fails
+    inside a ``shard_map``); the fixed-step ``diffeqsolve`` path (an ``adjoint`` given), a
+    progress bar and several batch axes refuse the batch with a ``ValueError`` (JAX's explicit
+    sharding fails inside diffrax's loop): run those in a ``jax.shard_map``
+    (``check_vma=False``), or shard over ``AxisType.Auto`` axes.
 
     Args:
         q0: initial attitude ``(..., 4)``, unit, scalar first (body to space).
@@ -193,8 +196,14 @@ def simulate(
     )
     if cfg.exact and adjoint is None and not progress:
         return _closed_form(q0, omega0, tensor, ts, principal=cfg.principal)
-    if cfg.substeps is None:
-        _refuse_split_batch("diffeqsolve path (an adaptive solver, an adjoint or a progress bar)", q0, omega0)
+    if cfg.substeps is None and (split := _split_argument(q0, omega0, "diffeqsolve path")) is not None:
+        if progress or not numerical_solve.solves_body_by_body(cfg) or len(q0.shape) != 2 or len(omega0.shape) != 2:
+            _refuse_split_batch(
+                "diffeqsolve path with a fixed step (an adjoint given), a progress bar or several batch axes",
+                q0,
+                omega0,
+            )
+        return _numerical_in_shards(cfg, q0, omega0, tensor, ts, args, dt0, split=split)
     try:
         return Simulation(*numerical_solve.solve(cfg, q0, omega0, inertia, shared_inertia, ts, args, dt0))
     except TypeError as err:  # jvp of the compiled solve meets diffrax's custom_vjp adjoint
@@ -209,17 +218,26 @@ def simulate(
 def _closed_form(q0: Array, omega0: Array, tensor: Array, ts: Array, principal: bool) -> Simulation:
     """:func:`_exact_simulate`, compiled; a batch split between devices by an Explicit mesh
     (:func:`jaxquat._threads.split_across_devices`) as the body of a ``jax.shard_map`` over the
-    batch's mesh axes. JAX's explicit sharding fails inside the closed form (jax 0.10.2: a
-    reshape of a sharded axis raised ``ShardingTypeError``), and each body's flow is its own, so
-    each device solves its shard. ``check_vma=False``: the cotangents of the closed form's custom
-    derivative rules carry no varying mesh axes, which JAX's check refuses in reverse mode."""
-    if not (split_across_devices(q0) or split_across_devices(omega0)):
+    batch's mesh axes (:func:`_in_shards`). JAX's explicit sharding fails inside the closed form
+    (jax 0.10.2: a reshape of a sharded axis raised ``ShardingTypeError``), and each body's flow
+    is its own, so each device solves its shard."""
+    split = _split_argument(q0, omega0, "closed form")
+    if split is None:
         return _arrays.compiled(_exact_simulate, q0, omega0, tensor, ts, principal=principal)
+    return _closed_form_in_shards(q0, omega0, tensor, ts, principal=principal, split=split)
+
+
+def _split_argument(q0: Array, omega0: Array, path: str) -> int | None:
+    """Which of ``(q0, omega0)`` holds the whole batch split between devices by an Explicit mesh
+    (:func:`jaxquat._threads.split_across_devices`), or ``None`` where neither is split. Where only
+    a smaller, broadcast argument is split, :func:`_refuse_split_batch` raises."""
+    if not (split_across_devices(q0) or split_across_devices(omega0)):
+        return None
     batch = jnp.broadcast_shapes(q0.shape[:-1], omega0.shape[:-1])
     whole = [i for i, x in enumerate((q0, omega0)) if x.shape[:-1] == batch and split_across_devices(x)]
-    if not whole:  # only a smaller, broadcast argument is split
-        _refuse_split_batch("closed form (a batch split only in a broadcast argument)", q0, omega0)
-    return _closed_form_in_shards(q0, omega0, tensor, ts, principal=principal, split=whole[0])
+    if not whole:
+        _refuse_split_batch(f"{path} (a batch split only in a broadcast argument)", q0, omega0)
+    return whole[0]
 
 
 @functools.partial(jax.jit, static_argnames=("principal", "split"))
@@ -227,8 +245,71 @@ def _closed_form_in_shards(
     q0: Array, omega0: Array, tensor: Array, ts: Array, principal: bool, split: int
 ) -> Simulation:
     """:func:`_closed_form`'s ``shard_map``, compiled (an eager call places the shared tensor
-    and ``ts`` on the mesh inside the program); ``split``: which of ``(q0, omega0)`` holds the
-    whole batch, split between devices, whose sharding every argument takes."""
+    and ``ts`` on the mesh inside the program)."""
+    return _in_shards(
+        lambda q0, omega0, tensor, ts, _: _exact_simulate(q0, omega0, tensor, ts, principal),
+        q0,
+        omega0,
+        tensor,
+        ts,
+        None,
+        split,
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("cfg", "static", "split"))
+def _numerical_in_shards_compiled(cfg, q0, omega0, tensor, ts, arrays, static, split: int) -> Simulation:
+    """:func:`_numerical_in_shards`' program: ``arrays`` the array leaves of ``(args, dt0)``,
+    ``static`` their tree and the leaves that are not arrays."""
+    from . import numerical_solve
+
+    treedef, others = static
+
+    def solve(q0, omega0, tensor, ts, arrays):
+        leaves = iter(arrays)
+        args, dt0 = jax.tree.unflatten(treedef, [next(leaves) if x is None else x for x in others])
+        shared = tensor if tensor.ndim == 2 else None
+        return Simulation(*numerical_solve.solve(cfg, q0, omega0, tensor, shared, ts, args, dt0))
+
+    @jax.custom_jvp
+    def run(q0, omega0, tensor, ts, arrays):
+        return _in_shards(solve, q0, omega0, tensor, ts, arrays, split)
+
+    @run.defjvp
+    def _refuse_derivatives(primals, tangents):
+        raise ValueError(
+            "simulate's diffeqsolve path (an adaptive solver or an adjoint) on a batch split between devices "
+            "by an Explicit mesh gives values but no derivatives (jax.grad, jax.jvp): diffrax's adjoint fails "
+            "inside jax.shard_map (jax 0.10.2, diffrax 0.7). Differentiate on the scan path (a fixed-step "
+            "solver with dt0, no adjoint) or the closed form (torque-free, no solver), which take such a batch, "
+            "or an unsplit batch; docs/integrators.md, 'Many bodies on a multi-core CPU'"
+        )
+
+    return run(q0, omega0, tensor, ts, arrays)
+
+
+def _numerical_in_shards(cfg, q0: Array, omega0: Array, tensor: Array, ts: Array, args, dt0, split: int) -> Simulation:
+    """``diffeqsolve``'s path (an adaptive solver, or an adjoint given) for a batch split between
+    devices by an Explicit mesh: each device solves its shard (:func:`_in_shards`), the torque's
+    ``args`` and ``dt0`` replicated. JAX's explicit sharding fails inside diffrax (jax 0.10.2,
+    diffrax 0.7: its term check raised ``ShardingTypeError`` and its loop under ``vmap`` a
+    ``ValueError``), and each body's adaptive steps are its own, so a device needs nothing from
+    the others."""
+    leaves, treedef = jax.tree.flatten((args, dt0))
+    is_array = [isinstance(x, (jax.Array, np.ndarray)) for x in leaves]
+    arrays = tuple(x for x, a in zip(leaves, is_array, strict=True) if a)
+    others = tuple(None if a else x for x, a in zip(leaves, is_array, strict=True))
+    return _numerical_in_shards_compiled(cfg, q0, omega0, tensor, ts, arrays, (treedef, others), split=split)
+
+
+def _in_shards(fn: Callable, q0: Array, omega0: Array, tensor: Array, ts: Array, shared: Any, split: int) -> Any:
+    """``fn(q0, omega0, tensor, ts, shared)`` as the body of a ``jax.shard_map`` over the mesh axes
+    that split the batch of ``(q0, omega0)[split]``: the other batch arguments (a per-body
+    ``tensor`` too) take its sharding, ``ts`` and ``shared`` (a pytree of arrays) are replicated,
+    and every leaf of the result is split along its leading batch axes as the batch is.
+    ``check_vma=False``: the cotangents of the closed form's custom derivative rules carry no
+    varying mesh axes, and diffrax's loop carries a flag, both of which JAX's check refuses
+    (diffrax issue #735)."""
     batch = jnp.broadcast_shapes(q0.shape[:-1], omega0.shape[:-1])
     sharding = jax.typeof((q0, omega0)[split]).sharding
     b = tuple(sharding.spec)[:-1]
@@ -241,15 +322,21 @@ def _closed_form_in_shards(
     if tensor.ndim > 2:
         tensor = jnp.broadcast_to(tensor, batch + tensor.shape[-2:])
     tensor, ts = placed(tensor, tensor_spec), placed(ts, ())
-    out: Any = PartitionSpec(*b, None, None)  # the spec of q and omega (a Simulation's leaves)
+    shared = jax.tree.map(lambda x: placed(jnp.asarray(x), ()), shared)
     body = jax.shard_map(
-        functools.partial(_exact_simulate, principal=principal),
+        fn,
         mesh=sharding.mesh,
-        in_specs=(PartitionSpec(*b, None), PartitionSpec(*b, None), PartitionSpec(*tensor_spec), PartitionSpec()),
-        out_specs=Simulation(out, out, None),
+        in_specs=(
+            PartitionSpec(*b, None),
+            PartitionSpec(*b, None),
+            PartitionSpec(*tensor_spec),
+            PartitionSpec(),
+            PartitionSpec(),
+        ),
+        out_specs=PartitionSpec(*b),
         check_vma=False,
     )
-    return body(q0, omega0, tensor, ts)
+    return body(q0, omega0, tensor, ts, shared)
 
 
 def _refuse_split_batch(path: str, q0: Array, omega0: Array) -> None:
