@@ -278,7 +278,7 @@ def _numerical_in_shards_compiled(cfg, q0, omega0, tensor, ts, arrays, static, s
     @run.defjvp
     def _refuse_derivatives(primals, tangents):
         raise ValueError(
-            "simulate's diffeqsolve path (an adaptive solver or an adjoint) on a batch split between devices "
+            "simulate's adaptive path (diffeqsolve with an adaptive solver) on a batch split between devices "
             "by an Explicit mesh gives values but no derivatives (jax.grad, jax.jvp): diffrax's adjoint fails "
             "inside jax.shard_map (jax 0.10.2, diffrax 0.7). Differentiate on the scan path (a fixed-step "
             "solver with dt0, no adjoint) or the closed form (torque-free, no solver), which take such a batch, "
@@ -289,7 +289,7 @@ def _numerical_in_shards_compiled(cfg, q0, omega0, tensor, ts, arrays, static, s
 
 
 def _numerical_in_shards(cfg, q0: Array, omega0: Array, tensor: Array, ts: Array, args, dt0, split: int) -> Simulation:
-    """``diffeqsolve``'s path (an adaptive solver, or an adjoint given) for a batch split between
+    """``diffeqsolve``'s adaptive path (each body solved on its own) for a batch split between
     devices by an Explicit mesh: each device solves its shard (:func:`_in_shards`), the torque's
     ``args`` and ``dt0`` replicated. JAX's explicit sharding fails inside diffrax (jax 0.10.2,
     diffrax 0.7: its term check raised ``ShardingTypeError`` and its loop under ``vmap`` a
@@ -343,8 +343,9 @@ def _refuse_split_batch(path: str, q0: Array, omega0: Array) -> None:
     """A clear error where a batch split between devices by its type (an Explicit mesh,
     :func:`jaxquat._threads.split_across_devices`) reaches a path that JAX's explicit sharding
     fails inside (session 70, jax 0.10.2: diffrax's term check and its loop under ``vmap`` raised
-    ``ShardingTypeError`` or ``ValueError`` from deep in the solve). The scan path and the closed
-    form (:func:`_closed_form`) take such a batch (``tests/test_sharding.py``)."""
+    ``ShardingTypeError`` or ``ValueError`` from deep in the solve). The scan path, the closed
+    form (:func:`_closed_form`) and the adaptive path (:func:`_numerical_in_shards`, values only)
+    take such a batch (``tests/test_sharding.py``)."""
     if split_across_devices(q0) or split_across_devices(omega0):
         raise ValueError(
             f"simulate's {path} does not take a batch split between devices by an Explicit mesh "
