@@ -97,7 +97,14 @@ print("split across devices:", split)
 # adaptive path refuses derivatives there (diffrax's adjoint fails inside a shard_map), and the
 # fixed-step diffeqsolve path (an adjoint given) the split batch, each with the ways out.
 inertia = np.diag([1.0, 2.0, 2.5]).astype(np.float32)
-for label, kw in (("closed form", {}), ("adaptive", {"solver": jq.RKMK45()})):
+
+
+def damping(t, q, w, a):  # its args: an array (replicated to every device) and leaves that are not arrays
+    return -a["k"] * w * (2.0 if a["mode"] == "double" else 1.0) * a["scale"]
+
+
+damped = {"solver": jq.RKMK45(), "torque": damping, "args": {"k": jnp.float32(0.3), "mode": "double", "scale": 0.5}}
+for label, kw in (("closed form", {}), ("adaptive", damped)):
     plain_q = jq.simulate(args[0], args[1], inertia, ts, **kw).q
     for kind in (AxisType.Auto, AxisType.Explicit):
         mesh = jax.make_mesh((4,), ("bodies",), axis_types=(kind,))
@@ -108,7 +115,7 @@ for label, kw in (("closed form", {}), ("adaptive", {"solver": jq.RKMK45()})):
         assert len(got.sharding.device_set) == 4 and not got.sharding.is_fully_replicated, (label, kind, got.sharding)
         print("ran", label, kind)
 try:
-    jax.grad(lambda w: jnp.sum(jq.simulate(q, w, inertia, ts, solver=jq.RKMK45()).q))(w)
+    jax.grad(lambda w: jnp.sum(jq.simulate(q, w, inertia, ts, **damped).q))(w)
 except ValueError as err:
     assert "gives values but no derivatives" in str(err), err
     print("refused adaptive derivatives")
