@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple, NoReturn
 
 import jax
 import jax.numpy as jnp
@@ -197,11 +197,10 @@ def simulate(
     if cfg.exact and adjoint is None and not progress:
         return _closed_form(q0, omega0, tensor, ts, principal=cfg.principal)
     if cfg.substeps is None and (split := _split_argument(q0, omega0, "diffeqsolve path")) is not None:
-        if progress or not numerical_solve.solves_body_by_body(cfg) or len(q0.shape) != 2 or len(omega0.shape) != 2:
+        batch = jnp.broadcast_shapes(q0.shape[:-1], omega0.shape[:-1])
+        if progress or not numerical_solve.solves_body_by_body(cfg) or len(batch) != 1:
             _refuse_split_batch(
-                "diffeqsolve path with a fixed step (an adjoint given), a progress bar or several batch axes",
-                q0,
-                omega0,
+                "diffeqsolve path with a fixed step (an adjoint given), a progress bar or several batch axes"
             )
         return _numerical_in_shards(cfg, q0, omega0, tensor, ts, args, dt0, split=split)
     try:
@@ -236,7 +235,7 @@ def _split_argument(q0: Array, omega0: Array, path: str) -> int | None:
     batch = jnp.broadcast_shapes(q0.shape[:-1], omega0.shape[:-1])
     whole = [i for i, x in enumerate((q0, omega0)) if x.shape[:-1] == batch and split_across_devices(x)]
     if not whole:
-        _refuse_split_batch(f"{path} (a batch split only in a broadcast argument)", q0, omega0)
+        _refuse_split_batch(f"{path} (a batch split only in a broadcast argument)")
     return whole[0]
 
 
@@ -257,17 +256,37 @@ def _closed_form_in_shards(
     )
 
 
-@functools.partial(jax.jit, static_argnames=("cfg", "static", "split"))
-def _numerical_in_shards_compiled(cfg, q0, omega0, tensor, ts, arrays, static, split: int) -> Simulation:
-    """:func:`_numerical_in_shards`' program: ``arrays`` the array leaves of ``(args, dt0)``,
-    ``static`` their tree and the leaves that are not arrays."""
+def _numerical_in_shards(cfg, q0: Array, omega0: Array, tensor: Array, ts: Array, args, dt0, split: int) -> Simulation:
+    """``diffeqsolve``'s adaptive path (each body solved on its own) for a batch split between
+    devices by an Explicit mesh: each device solves its shard (:func:`_in_shards`), the torque's
+    ``args`` and ``dt0`` replicated. JAX's explicit sharding fails inside diffrax (jax 0.10.2,
+    diffrax 0.7: its term check raised ``ShardingTypeError`` and its loop under ``vmap`` a
+    ``ValueError``), and each body's adaptive steps are its own, so a device needs nothing from
+    the others. Compiled by ``eqx.filter_jit`` as :func:`numerical_solve.solve` is: ``cfg``,
+    ``split`` and the leaves of ``args`` that are not arrays are static."""
+    return _numerical_in_shards_program()(cfg, q0, omega0, tensor, ts, args, dt0, split)
+
+
+@functools.cache
+def _numerical_in_shards_program() -> Callable:
+    """:func:`_numerical_in_shards`' program, made on first use (equinox is imported with the
+    numerical paths, not with this module)."""
+    import equinox as eqx
+
+    return eqx.filter_jit(_numerical_in_shards_body)
+
+
+def _numerical_in_shards_body(cfg, q0, omega0, tensor, ts, args, dt0, split: int) -> Simulation:
+    """:func:`_numerical_in_shards`' program: the array leaves of ``(args, dt0)`` pass the
+    ``shard_map`` replicated, the others are put back beside them on each device."""
+    import equinox as eqx
+
     from . import numerical_solve
 
-    treedef, others = static
+    arrays, static = eqx.partition((args, dt0), eqx.is_array)
 
     def solve(q0, omega0, tensor, ts, arrays):
-        leaves = iter(arrays)
-        args, dt0 = jax.tree.unflatten(treedef, [next(leaves) if x is None else x for x in others])
+        args, dt0 = eqx.combine(arrays, static)
         shared = tensor if tensor.ndim == 2 else None
         return Simulation(*numerical_solve.solve(cfg, q0, omega0, tensor, shared, ts, args, dt0))
 
@@ -286,20 +305,6 @@ def _numerical_in_shards_compiled(cfg, q0, omega0, tensor, ts, arrays, static, s
         )
 
     return run(q0, omega0, tensor, ts, arrays)
-
-
-def _numerical_in_shards(cfg, q0: Array, omega0: Array, tensor: Array, ts: Array, args, dt0, split: int) -> Simulation:
-    """``diffeqsolve``'s adaptive path (each body solved on its own) for a batch split between
-    devices by an Explicit mesh: each device solves its shard (:func:`_in_shards`), the torque's
-    ``args`` and ``dt0`` replicated. JAX's explicit sharding fails inside diffrax (jax 0.10.2,
-    diffrax 0.7: its term check raised ``ShardingTypeError`` and its loop under ``vmap`` a
-    ``ValueError``), and each body's adaptive steps are its own, so a device needs nothing from
-    the others."""
-    leaves, treedef = jax.tree.flatten((args, dt0))
-    is_array = [isinstance(x, (jax.Array, np.ndarray)) for x in leaves]
-    arrays = tuple(x for x, a in zip(leaves, is_array, strict=True) if a)
-    others = tuple(None if a else x for x, a in zip(leaves, is_array, strict=True))
-    return _numerical_in_shards_compiled(cfg, q0, omega0, tensor, ts, arrays, (treedef, others), split=split)
 
 
 def _in_shards(fn: Callable, q0: Array, omega0: Array, tensor: Array, ts: Array, shared: Any, split: int) -> Any:
@@ -339,21 +344,21 @@ def _in_shards(fn: Callable, q0: Array, omega0: Array, tensor: Array, ts: Array,
     return body(q0, omega0, tensor, ts, shared)
 
 
-def _refuse_split_batch(path: str, q0: Array, omega0: Array) -> None:
+def _refuse_split_batch(path: str) -> NoReturn:
     """A clear error where a batch split between devices by its type (an Explicit mesh,
     :func:`jaxquat._threads.split_across_devices`) reaches a path that JAX's explicit sharding
     fails inside (session 70, jax 0.10.2: diffrax's term check and its loop under ``vmap`` raised
     ``ShardingTypeError`` or ``ValueError`` from deep in the solve). The scan path, the closed
     form (:func:`_closed_form`) and the adaptive path (:func:`_numerical_in_shards`, values only)
-    take such a batch (``tests/test_sharding.py``)."""
-    if split_across_devices(q0) or split_across_devices(omega0):
-        raise ValueError(
-            f"simulate's {path} does not take a batch split between devices by an Explicit mesh "
-            "(arguments 'q0', 'omega0'): run simulate as the body of jax.shard_map(..., check_vma=False) "
-            "over the mesh, shard over AxisType.Auto axes, or take the scan path (a fixed-step solver "
-            "with dt0, no adjoint) or the closed form (torque-free, no solver); docs/integrators.md, "
-            "'Many bodies on a multi-core CPU'"
-        )
+    take such a batch (``tests/test_sharding.py``). Called where the batch is known to be split
+    (:func:`_split_argument`)."""
+    raise ValueError(
+        f"simulate's {path} does not take a batch split between devices by an Explicit mesh "
+        "(arguments 'q0', 'omega0'): run simulate as the body of jax.shard_map(..., check_vma=False) "
+        "over the mesh, shard over AxisType.Auto axes, or take the scan path (a fixed-step solver "
+        "with dt0, no adjoint) or the closed form (torque-free, no solver); docs/integrators.md, "
+        "'Many bodies on a multi-core CPU'"
+    )
 
 
 def _exact_simulate(q0, omega0, inertia, ts, principal: bool) -> Simulation:
