@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jax.custom_derivatives import SymbolicZero
 
 from .. import _checks, _trig
 from .._threads import at_top_level, cpu_compiler_options, in_shard_map
@@ -54,6 +55,28 @@ _CHECKPOINTS = 64
 # slower on two, where XLA splits each loop of a step between the threads (the forward pass
 # 350 -> 700 ms; 20 000 bodies: 374 ms).
 _CHUNK_BYTES = 80_000
+
+# The scan path's chunks on CPU for derivatives (forward and reverse mode): at most this many
+# bodies, either dtype; the values keep _CHUNK_BYTES' chunks (_derivatives_in_smaller_chunks). A
+# derivative holds more arrays per body than the values (the tangents or cotangents beside the
+# states), which overflowed the core's cache at the values' chunks. 10^5 torque-free bodies x 1000
+# RKMK4 steps, one core of a 2-core Intel Xeon (2 MiB of L2 per core), least of 3, derivative
+# chunks of 20 000 -> 2000 float32 bodies: gradient 5123 -> 2697 ms, one jvp 2542 -> 1241 ms,
+# jacfwd with 3 columns 6747 -> 3217 ms (5000: 3794 and 1534 ms; 1000: 3003, 1275 and 3274 ms);
+# float64, 10 000 -> 2000: 9213 -> 5470 ms and 4737 -> 2494 ms; at 10^4 float32 bodies (one chunk
+# before) 386 -> 269 ms and 175 -> 124 ms. The forward pass takes 607 ms (1324 ms in float64).
+# On both cores (XLA splitting each loop between two threads) about even: float32 gradient 4957 ->
+# 4784 ms and jvp 2036 -> 2166 ms, float64 8544 -> 7837 ms and 3648 -> 2797 ms. The values in
+# chunks of 2000 as well cost the forward pass on both cores (float32 684 -> 1245 ms).
+_DERIVATIVE_CHUNK = 2000
+
+# The scan path's chunks on CPU with a torque, values and derivatives: at most this many bodies.
+# The loops around the torque (struct_of_arrays.EulerEquations) hold more arrays per body than the
+# torque-free step, and the values' chunks overflowed the cache as the derivatives' did. 10^5
+# bodies under benchmarks/simulation.py's PD law x 1000 RKMK4 steps, the same Intel Xeon, least of
+# 3, chunks of 20 000 -> 2000 float32 bodies: forward 2991-3053 -> 1450 ms on one core and 4161 ->
+# 2370 ms on both; float64, 10 000 -> 2000: 4770 -> 3021 ms and 6859 -> 3708 ms.
+_TORQUE_CHUNK = 2000
 
 # The scan path's chunks on CPU inside a jax.shard_map (each device solving its own shard): this
 # many bodies, either dtype. There a device's loops are best kept on one thread (cpu_compiler_options
@@ -90,7 +113,8 @@ class Config(NamedTuple):
     max_steps: int
     adjoint: Any
     progress: bool
-    chunks: tuple[int, int]  # the most bodies per chunk (_in_chunks): the scan path's, the adaptive path's
+    # the most bodies per chunk (_in_chunks): the scan path's values, its derivatives, the adaptive path's
+    chunks: tuple[int, int, int]
 
 
 def solve(cfg: Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> tuple[Array, Array, Any]:
@@ -200,7 +224,7 @@ def _solve_body(cfg: Config, q0, omega0, inertia, shared_inertia, ts, args, dt0)
     flat = [x.reshape((-1,) + x.shape[len(batch) :]) for x in (q0, omega0, inertia)]
     if adaptive:  # each body its own step sizes
         qs, ws, sol = _in_chunks(
-            jax.vmap(lambda q, w, i: one_solve(q, w, i, torque)), cfg.chunks[1], *flat, remat=False
+            jax.vmap(lambda q, w, i: one_solve(q, w, i, torque)), cfg.chunks[2], *flat, remat=False
         )
     else:  # fixed steps: one solve of the stacked batch (diffrax's per-step work is shared)
         per_body = None if torque is None else jax.vmap(torque, in_axes=(None, 0, 0, None))
@@ -219,9 +243,12 @@ def _solve_body(cfg: Config, q0, omega0, inertia, shared_inertia, ts, args, dt0)
             # whole: its stored states are the segments' starts already, and a third forward pass
             # cost more than it saved (10^5 float32 bodies x 1000 RKMK4 steps, one core: the gradient
             # 3561 ms unsegmented, 4070 ms segmented and rematerialised, 3358 ms segmented alone).
-            state_bytes = 7 * _chunk_size(flat[0].shape[0], cfg.chunks[0]) * flat[0].dtype.itemsize  # q and w
-            remat = not fixed_step.segment_length(substeps, state_bytes)
-            qs, ws = _in_chunks(batch_first, cfg.chunks[0], *flat, remat=remat)
+            def chunked(size):
+                state_bytes = 7 * _chunk_size(flat[0].shape[0], size) * flat[0].dtype.itemsize  # q and w
+                remat = not fixed_step.segment_length(substeps, state_bytes)
+                return functools.partial(_in_chunks, batch_first, size, remat=remat)
+
+            qs, ws = _derivatives_in_smaller_chunks(chunked, cfg.chunks[0], cfg.chunks[1], *flat)
             sol = None
     return qs.reshape(batch + (n, 4)), ws.reshape(batch + (n, 3)), sol
 
@@ -265,6 +292,49 @@ def _in_chunks(solve: Callable, size: int, q: Array, w: Array, inertia: Array, r
         return jnp.swapaxes(x, 0, 1).reshape((count * size,) + x.shape[2:])[:n]
 
     return jax.tree.map(unchunk, jax.lax.map(one, parts))
+
+
+def _derivatives_in_smaller_chunks(
+    chunked: Callable[[int], Callable], size: int, derivative_size: int, q: Array, w: Array, inertia: Array
+) -> Any:
+    """``chunked(size)(q, w, inertia)`` (the solve in chunks of at most ``size`` bodies,
+    :func:`_in_chunks`), whose derivatives (forward mode, and reverse mode by transposing it) are
+    those of ``chunked(derivative_size)``: the same per-body arithmetic, so the same values and
+    derivatives; only how many bodies a loop of the step covers differs. Where the batch splits
+    into the same chunks either way, the first alone.
+
+    Both solves are closure-converted (``eqx.filter_closure_convert``): every array they close
+    over (a torque's traced gains, ``ts``) becomes an input of the ``custom_jvp``, whose rule would
+    otherwise refuse to differentiate with respect to it."""
+    n = q.shape[0]
+    if _chunk_size(n, derivative_size) >= _chunk_size(n, size):
+        return chunked(size)(q, w, inertia)
+    values, static = eqx.partition(eqx.filter_closure_convert(chunked(size), q, w, inertia), eqx.is_array)
+    derivatives, static_d = eqx.partition(
+        eqx.filter_closure_convert(chunked(derivative_size), q, w, inertia), eqx.is_array
+    )
+
+    @jax.custom_jvp
+    def solve(values, derivatives, *xs):  # the jaxprs closed over (static), their constants inputs
+        return eqx.combine(values, static)(*xs)
+
+    @functools.partial(solve.defjvp, symbolic_zeros=True)
+    def solve_jvp(primals, tangents):
+        # only the perturbed inputs differentiated: a zero tangent made an array of zeros (the
+        # inertia's, the constants') cost 10-25 % in arithmetic on them
+        leaves, tree = jax.tree.flatten(primals[1:])
+        d_leaves = jax.tree.leaves(tangents[1:], is_leaf=lambda t: isinstance(t, SymbolicZero))
+        live = [not isinstance(t, SymbolicZero) for t in d_leaves]
+
+        def run(*live_leaves):
+            it = iter(live_leaves)
+            derivatives, *xs = jax.tree.unflatten(tree, [next(it) if v else x for x, v in zip(leaves, live)])
+            return eqx.combine(derivatives, static_d)(*xs)
+
+        pick = lambda xs: [x for x, v in zip(xs, live) if v]  # noqa: E731
+        return jax.jvp(run, pick(leaves), pick(d_leaves))
+
+    return solve(values, derivatives, q, w, inertia)
 
 
 def _chunk_size(n: int, size: int) -> int:
@@ -393,7 +463,9 @@ def configure(
     # a GPU takes the batch whole, and so does a solve with a progress bar (one bar, not one a chunk)
     in_chunks = _trig.is_cpu() and not progress
     scan_chunk = _SHARD_MAP_CHUNK if in_shard_map() else _CHUNK_BYTES // q0.dtype.itemsize
-    chunks = (scan_chunk, _ADAPTIVE_CHUNK) if in_chunks else (q0.size, q0.size)
+    if torque is not None:
+        scan_chunk = min(scan_chunk, _TORQUE_CHUNK)
+    chunks = (scan_chunk, min(scan_chunk, _DERIVATIVE_CHUNK), _ADAPTIVE_CHUNK) if in_chunks else (q0.size,) * 3
     return Config(
         solver,
         torque,
