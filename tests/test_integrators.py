@@ -656,11 +656,11 @@ def test_a_batch_larger_than_a_chunk_is_solved_chunk_by_chunk_with_the_same_valu
     bodies: 4 chunks, the last padded with copies of the first body; 4 bodies here, 3 with a torque
     acting, ``_TORQUE_CHUNK``), and derivatives in chunks of 2 (``_DERIVATIVE_CHUNK``: at 10^5
     float32 bodies on one core the gradient 5.1 -> 2.7 s). The struct-of-arrays step sees batches
-    of 4, 3 and 2, and the states, the gradient in the initial
-    rates, the torque's gains (given in ``args``, and closed over by the torque: the solves are
-    closure-converted) and the per-body inertia, and a ``jvp`` in the gains are those of the batch
-    solved whole (LieEuler: the chunking does not depend on the tableau, and its one stage
-    compiles fastest), and with one tensor shared by the batch the states too."""
+    of 4, 3 and 2, and the states, the gradient in the initial rates, the torque's gains (given in
+    ``args``, and closed over by the torque: the solves are closure-converted) and the per-body
+    inertia, and a ``jvp`` in the gains are those of the batch solved whole (LieEuler: the
+    chunking does not depend on the tableau, and its one stage compiles fastest), and with one
+    tensor shared by the batch the states too."""
     from jaxquat.integration import numerical_solve, struct_of_arrays
 
     rng = np.random.default_rng(11)

@@ -60,11 +60,13 @@ _CHUNK_BYTES = 80_000
 # bodies, either dtype; the values keep _CHUNK_BYTES' chunks (_derivatives_in_smaller_chunks). A
 # derivative holds more arrays per body than the values (the tangents or cotangents beside the
 # states), which overflowed the core's cache at the values' chunks. 10^5 torque-free bodies x 1000
-# RKMK4 steps, one core of a 2-core Intel Xeon (2 MiB of L2 per core), least of 3, derivative
-# chunks of 20 000 -> 2000 float32 bodies: gradient 5123 -> 2697 ms, one jvp 2542 -> 1241 ms,
+# RKMK4 steps, one core of a 2-core Intel Xeon (2 MiB of L2 per core), least of 3, the whole solve
+# in chunks of 20 000 -> 2000 float32 bodies: gradient 5123 -> 2697 ms, one jvp 2542 -> 1241 ms,
 # jacfwd with 3 columns 6747 -> 3217 ms (5000: 3794 and 1534 ms; 1000: 3003, 1275 and 3274 ms);
 # float64, 10 000 -> 2000: 9213 -> 5470 ms and 4737 -> 2494 ms; at 10^4 float32 bodies (one chunk
-# before) 386 -> 269 ms and 175 -> 124 ms. The forward pass takes 607 ms (1324 ms in float64).
+# before) 386 -> 269 ms and 175 -> 124 ms. Through _derivatives_in_smaller_chunks (values in the
+# larger chunks): float32 2718-2766, 1285 and 3468 ms, float64 5824 and 2659 ms. The forward pass
+# takes 607 ms (1324 ms in float64).
 # On both cores (XLA splitting each loop between two threads) about even: float32 gradient 4957 ->
 # 4784 ms and jvp 2036 -> 2166 ms, float64 8544 -> 7837 ms and 3648 -> 2797 ms. The values in
 # chunks of 2000 as well cost the forward pass on both cores (float32 684 -> 1245 ms).
@@ -315,11 +317,11 @@ def _derivatives_in_smaller_chunks(
     )
 
     @jax.custom_jvp
-    def solve(values, derivatives, *xs):  # the jaxprs closed over (static), their constants inputs
+    def in_chunks(values, derivatives, *xs):  # the jaxprs closed over (static), their constants inputs
         return eqx.combine(values, static)(*xs)
 
-    @functools.partial(solve.defjvp, symbolic_zeros=True)
-    def solve_jvp(primals, tangents):
+    @functools.partial(in_chunks.defjvp, symbolic_zeros=True)
+    def in_chunks_jvp(primals, tangents):
         # only the perturbed inputs differentiated: a zero tangent made an array of zeros (the
         # inertia's, the constants') cost 10-25 % in arithmetic on them
         leaves, tree = jax.tree.flatten(primals[1:])
@@ -334,7 +336,7 @@ def _derivatives_in_smaller_chunks(
         pick = lambda xs: [x for x, v in zip(xs, live) if v]  # noqa: E731
         return jax.jvp(run, pick(leaves), pick(d_leaves))
 
-    return solve(values, derivatives, q, w, inertia)
+    return in_chunks(values, derivatives, q, w, inertia)
 
 
 def _chunk_size(n: int, size: int) -> int:
