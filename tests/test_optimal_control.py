@@ -201,6 +201,23 @@ def test_three_failed_line_searches_in_a_row_reset_the_nodes_to_the_rollout_of_t
     np.testing.assert_allclose(out[1], rolled[0], rtol=1e-12)  # one rollout, of the shared controls
 
 
+def test_under_vmap_every_carry_of_the_solver_is_batched_from_the_start_empty_ones_too():
+    """The solver's while-loop carries go in batched (``_batched_from_the_start``), so that the
+    loop's batching rule traces its body once: ``vmap`` with ``out_axes=None`` refuses each leaf
+    as batched, the empty ``(N, 0)`` slacks of a problem without path constraints among them
+    (``jnp.where`` returned those unbatched, and the rule traced the body a second time), and the
+    values are the leaves'."""
+    from jaxquat.control.interior_point import _batched_from_the_start
+
+    leaves = (jnp.ones((3, 0)), jnp.asarray(4), jnp.asarray(False), jnp.arange(6.0).reshape(3, 2))
+    x = jnp.ones((2, 3, 7))
+    for i, leaf in enumerate(leaves):
+        with pytest.raises(ValueError, match="out_axes"):
+            jax.vmap(lambda x, i=i: _batched_from_the_start(leaves, x)[i], out_axes=None)(x)
+        out = jax.vmap(lambda x, i=i: _batched_from_the_start(leaves, x)[i])(x)
+        np.testing.assert_array_equal(np.asarray(out), np.broadcast_to(np.asarray(leaf), (2, *leaf.shape)))
+
+
 def test_the_inertia_correction_keeps_a_definite_spectrum_and_bounds_an_indefinite_one():
     """The reduced Hessian's corrected eigenvalues: a positive definite spectrum above the floor is
     kept (Newton's step, and its quadratic convergence, where the reduced Hessian is already

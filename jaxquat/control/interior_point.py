@@ -277,6 +277,24 @@ def _node_reset(stage: Callable, N: int) -> Callable:
     return reset
 
 
+def _batched_from_the_start(tree: Any, x: Array) -> Any:
+    """``tree`` unchanged, each leaf through a select on a flag formed from ``x`` whose two
+    branches are the leaf itself: under ``vmap`` over ``x`` every leaf is then batched, so that
+    the batching rule of the solver's while loop, given its carries batched from the start,
+    traces the body once instead of again after finding the constants (iteration count, barrier
+    parameter, filter, flags) batched by a first pass. Time to the first Bilimoria-Wie result
+    (12 intervals, 8 starts): 22.5-23.1 s against 24.4 s, tracing 7.7-8.3 s against 9.1 s.
+
+    ``lax.select``, not ``jnp.where``: ``jnp.where`` returns an empty operand as it is
+    (unbatched), and a problem without path constraints carries two empty ``(N, 0)`` leaves
+    (the slacks and their multipliers), which the rule then found batched on a second pass
+    (session 73: the suite's minimum-energy slew, two problems, float64, a 2-core Intel Xeon:
+    tracing 2.65-2.68 -> 2.12-2.18 s, the first call 7.74 -> 7.21 s; the same results to the
+    bit)."""
+    same = x.ravel()[0] == x.ravel()[0]
+    return jax.tree.map(lambda a: jax.lax.select(jnp.broadcast_to(same, jnp.shape(a)), a, a), tree)
+
+
 def _split(z, nx, nu):
     return z[:nx], z[nx : nx + nu], z[nx + nu :]
 
@@ -623,18 +641,7 @@ def solve_shooting(
         jnp.asarray(False),
         jnp.asarray(0),
     )
-    # Every carry made to depend on the starting point (a select whose two branches are the
-    # carry itself): under vmap each is then batched from the start, and the while loop's
-    # batching rule does not trace the body again after finding the constants (iteration count,
-    # barrier parameter, filter, flags) batched by the first pass. Time to the first Bilimoria-Wie
-    # result (12 intervals, 8 starts): 22.5-23.1 s against 24.4 s, tracing 7.7-8.3 s against 9.1 s.
-    # lax.select, not jnp.where: jnp.where returns an empty operand as it is (unbatched), and a
-    # problem without path constraints carries two (N, 0) leaves (the slacks and multipliers),
-    # whose batching the rule then found on a second pass (the suite's minimum-energy slew, two
-    # problems: tracing 2.65-2.68 -> 2.12-2.18 s, the first call 7.74 -> 7.21 s, on a 2-core
-    # Intel Xeon; the same results to the bit).
-    same = X.ravel()[0] == X.ravel()[0]
-    st = jax.tree.map(lambda a: jax.lax.select(jnp.broadcast_to(same, jnp.shape(a)), a, a), st)
+    st = _batched_from_the_start(st, X)
     st = jax.lax.while_loop(lambda st: ~st.done, body, st)
     return ShootingSolution(
         jnp.concatenate([x0[None], st.X]),
