@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, NamedTuple, NoReturn
+from typing import TYPE_CHECKING, Any, NamedTuple, NoReturn, cast
 
 import jax
 import jax.numpy as jnp
@@ -120,8 +120,9 @@ def simulate(
     several devices runs on this path as one SPMD program, each step's branches chosen per
     element. On an Explicit mesh (``jax.make_mesh``'s default) the closed form runs each
     device's shard in a ``jax.shard_map`` of its own, and so does the adaptive path for a batch
-    with one axis (values only: its derivatives raise ``ValueError``, as diffrax's adjoint fails
-    inside a ``shard_map``); the fixed-step ``diffeqsolve`` path (an ``adjoint`` given), a
+    with one axis (reverse mode through a ``custom_vjp`` whose backward pass runs on the mesh's
+    axes made Auto, as diffrax's adjoint fails inside a ``shard_map``; forward mode is not
+    available there); the fixed-step ``diffeqsolve`` path (an ``adjoint`` given), a
     progress bar and several batch axes refuse the batch with a ``ValueError`` (JAX's explicit
     sharding fails inside diffrax's loop): run those in a ``jax.shard_map``
     (``check_vma=False``), or shard over ``AxisType.Auto`` axes.
@@ -206,7 +207,18 @@ def simulate(
             _refuse_split_batch(
                 "diffeqsolve path with a fixed step (an adjoint given), a progress bar or several batch axes"
             )
-        return _numerical_in_shards(cfg, q0, omega0, tensor, ts, args, dt0, split=split)
+        try:
+            return _numerical_in_shards(cfg, q0, omega0, tensor, ts, args, dt0, split=split)
+        except TypeError as err:  # jvp of its custom_vjp
+            if "custom_vjp" not in str(err):
+                raise
+            raise TypeError(
+                "forward-mode autodiff (jax.jvp, jax.jacfwd) through simulate's adaptive path on a batch split "
+                "between devices by an Explicit mesh is not available (reverse mode is): take the scan path (a "
+                "fixed-step solver with dt0, no adjoint) or the closed form (torque-free, no solver), or an "
+                "unsplit batch with adjoint=diffrax.ForwardMode(); docs/integrators.md, 'Many bodies on a "
+                "multi-core CPU'"
+            ) from err
     try:
         return Simulation(*numerical_solve.solve(cfg, q0, omega0, inertia, shared_inertia, ts, args, dt0))
     except TypeError as err:  # jvp of the compiled solve meets diffrax's custom_vjp adjoint
@@ -282,7 +294,13 @@ def _numerical_in_shards_program() -> Callable:
 
 def _numerical_in_shards_body(cfg, q0, omega0, tensor, ts, args, dt0, split: int) -> Simulation:
     """:func:`_numerical_in_shards`' program: the array leaves of ``(args, dt0)`` pass the
-    ``shard_map`` replicated, the others are put back beside them on each device."""
+    ``shard_map`` replicated, the others are put back beside them on each device.
+
+    Reverse mode through a ``custom_vjp`` whose backward pass is the whole batch's ``jax.vjp`` on
+    the mesh's axes made Auto (:func:`_pullback_on_auto_axes`), not JAX's transpose of the
+    forward ``shard_map``, inside which diffrax's adjoint fails (jax 0.10.2, diffrax 0.7: equinox's
+    closure conversion sees other argument types). Forward mode is not available: a ``custom_vjp``
+    has none (nor has diffrax's default adjoint on the unsplit path)."""
     import equinox as eqx
 
     from . import numerical_solve
@@ -294,58 +312,121 @@ def _numerical_in_shards_body(cfg, q0, omega0, tensor, ts, args, dt0, split: int
         shared = tensor if tensor.ndim == 2 else None
         return Simulation(*numerical_solve.solve(cfg, q0, omega0, tensor, shared, ts, args, dt0))
 
-    @jax.custom_jvp
-    def run(q0, omega0, tensor, ts, arrays):
-        return _in_shards(solve, q0, omega0, tensor, ts, arrays, split)
+    layout = _ShardLayout.of(q0, omega0, tensor, split)
 
-    @run.defjvp
-    def _refuse_derivatives(primals, tangents):
-        raise ValueError(
-            "simulate's adaptive path (diffeqsolve with an adaptive solver) on a batch split between devices "
-            "by an Explicit mesh gives values but no derivatives (jax.grad, jax.jvp): diffrax's adjoint fails "
-            "inside jax.shard_map (jax 0.10.2, diffrax 0.7). Differentiate on the scan path (a fixed-step "
-            "solver with dt0, no adjoint) or the closed form (torque-free, no solver), which take such a batch, "
-            "or an unsplit batch; docs/integrators.md, 'Many bodies on a multi-core CPU'"
+    @jax.custom_vjp
+    def run(q0, omega0, tensor, ts, arrays):
+        return layout.shard_map(solve, q0, omega0, tensor, ts, arrays)
+
+    def run_forward(q0, omega0, tensor, ts, arrays):
+        return run(q0, omega0, tensor, ts, arrays), (q0, omega0, tensor, ts, arrays)
+
+    def run_backward(primals, cotangent):
+        return _pullback_on_auto_axes(solve, primals, cotangent)
+
+    run.defvjp(run_forward, run_backward)
+    return run(*layout.placed(q0, omega0, tensor, ts, arrays))
+
+
+class _ShardLayout(NamedTuple):
+    """How :func:`_in_shards` splits a batch: the mesh, the batch's partition spec entries ``b``
+    (those of ``(q0, omega0)[split]``'s batch axes), the batch shape, and whether the tensor is
+    per body (split as the batch is) or shared (replicated)."""
+
+    mesh: Any
+    b: tuple
+    batch: tuple
+    per_body_tensor: bool
+
+    @classmethod
+    def of(cls, q0: Array, omega0: Array, tensor: Array, split: int) -> _ShardLayout:
+        sharding = jax.typeof((q0, omega0)[split]).sharding
+        batch = jnp.broadcast_shapes(q0.shape[:-1], omega0.shape[:-1])
+        return cls(sharding.mesh, tuple(sharding.spec)[:-1], batch, tensor.ndim > 2)
+
+    def _place(self, x: Array, spec: tuple) -> Array:
+        return jax.sharding.reshard(x, NamedSharding(self.mesh, PartitionSpec(*spec)))
+
+    def placed(self, q0: Array, omega0: Array, tensor: Array, ts: Array, shared: Any) -> tuple:
+        """The arguments broadcast to the batch (the tensor too, if per body) and placed: the
+        batch arguments split as the batch is, ``ts`` and ``shared`` replicated."""
+        row = (*self.b, None)
+        q0, omega0 = (self._place(jnp.broadcast_to(x, self.batch + x.shape[-1:]), row) for x in (q0, omega0))
+        if self.per_body_tensor:
+            tensor = jnp.broadcast_to(tensor, self.batch + tensor.shape[-2:])
+        tensor = self._place(tensor, self.tensor_spec)
+        shared = jax.tree.map(lambda x: self._place(jnp.asarray(x), ()), shared)
+        return q0, omega0, tensor, self._place(ts, ()), shared
+
+    @property
+    def tensor_spec(self) -> tuple:
+        return (*self.b, None, None) if self.per_body_tensor else ()
+
+    @property
+    def in_specs(self) -> tuple:
+        return (
+            PartitionSpec(*self.b, None),
+            PartitionSpec(*self.b, None),
+            PartitionSpec(*self.tensor_spec),
+            PartitionSpec(),
+            PartitionSpec(),
         )
 
-    return run(q0, omega0, tensor, ts, arrays)
+    def shard_map(self, fn: Callable, *placed: Any) -> Any:
+        """``fn(q0, omega0, tensor, ts, shared)`` as the body of a ``jax.shard_map`` over the
+        batch's mesh axes, on arguments from :meth:`placed`; every leaf of the result split along
+        its leading batch axes as the batch is. ``check_vma=False``: the cotangents of the closed
+        form's custom derivative rules carry no varying mesh axes, and diffrax's loop carries a
+        flag, both of which JAX's check refuses (diffrax issue #735)."""
+        out_specs = PartitionSpec(*self.b)
+        body = jax.shard_map(fn, mesh=self.mesh, in_specs=self.in_specs, out_specs=out_specs, check_vma=False)
+        return body(*placed)
+
+
+def _pullback_on_auto_axes(fn: Callable, primals: tuple, cotangent: Any) -> tuple:
+    """The cotangents of ``fn``'s arguments ``primals`` (placed by :meth:`_ShardLayout.placed`)
+    for the ``cotangent`` of its sharded result: ``jax.vjp`` of ``fn`` on the whole batch with the
+    mesh's axes made Auto (``jax.sharding.auto_axes``), where XLA's partitioner keeps the split
+    batch split, and the cotangents placed as their primals are. Not a ``vjp`` per shard inside a
+    ``shard_map``: there equinox's closure conversion in diffrax's checkpointed adjoint refused
+    its own arguments (constants typed without the manual mesh when converted, with it when
+    called; jax 0.10.2, equinox 0.13). Integer and boolean leaves are not differentiated (their
+    cotangents are ``float0`` zeros), nor are the result's."""
+    leaves, tree = jax.tree.flatten(primals)
+    floating = [jnp.issubdtype(x.dtype, jnp.inexact) for x in leaves]
+    ct_leaves = jax.tree.leaves(cotangent)
+    ct_floating = [jnp.issubdtype(c.dtype, jnp.inexact) for c in ct_leaves]
+
+    def pulled(inputs):  # every array an argument: one closed over would keep its Explicit type
+        diff, fixed, cts = inputs
+
+        def of_floating(*xs):
+            it, rest = iter(xs), iter(fixed)
+            full = jax.tree.unflatten(tree, [next(it) if f else next(rest) for f in floating])
+            out = jax.tree.leaves(fn(*full))
+            return [o for o, f in zip(out, ct_floating) if f]
+
+        _, pull = jax.vjp(of_floating, *diff)
+        return tuple(pull(list(cts)))
+
+    diff = [x for x, f in zip(leaves, floating) if f]
+    fixed = [x for x, f in zip(leaves, floating) if not f]
+    cts = [c for c, f in zip(ct_leaves, ct_floating) if f]
+    shardings = tuple(jax.typeof(x).sharding for x in diff)
+    on_auto_axes = cast(Callable[[Any], tuple], jax.sharding.auto_axes(pulled, out_sharding=shardings))
+    grads = iter(on_auto_axes((diff, fixed, cts)))
+    out = [next(grads) if f else np.zeros(x.shape, jax.dtypes.float0) for x, f in zip(leaves, floating)]
+    return tuple(jax.tree.unflatten(tree, out))
 
 
 def _in_shards(fn: Callable, q0: Array, omega0: Array, tensor: Array, ts: Array, shared: Any, split: int) -> Any:
     """``fn(q0, omega0, tensor, ts, shared)`` as the body of a ``jax.shard_map`` over the mesh axes
     that split the batch of ``(q0, omega0)[split]``: the other batch arguments (a per-body
     ``tensor`` too) take its sharding, ``ts`` and ``shared`` (a pytree of arrays) are replicated,
-    and every leaf of the result is split along its leading batch axes as the batch is.
-    ``check_vma=False``: the cotangents of the closed form's custom derivative rules carry no
-    varying mesh axes, and diffrax's loop carries a flag, both of which JAX's check refuses
-    (diffrax issue #735)."""
-    batch = jnp.broadcast_shapes(q0.shape[:-1], omega0.shape[:-1])
-    sharding = jax.typeof((q0, omega0)[split]).sharding
-    b = tuple(sharding.spec)[:-1]
-
-    def placed(x: Array, spec: tuple) -> Array:
-        return jax.sharding.reshard(x, NamedSharding(sharding.mesh, PartitionSpec(*spec)))
-
-    q0, omega0 = (placed(jnp.broadcast_to(x, batch + x.shape[-1:]), (*b, None)) for x in (q0, omega0))
-    tensor_spec = (*b, None, None) if tensor.ndim > 2 else ()
-    if tensor.ndim > 2:
-        tensor = jnp.broadcast_to(tensor, batch + tensor.shape[-2:])
-    tensor, ts = placed(tensor, tensor_spec), placed(ts, ())
-    shared = jax.tree.map(lambda x: placed(jnp.asarray(x), ()), shared)
-    body = jax.shard_map(
-        fn,
-        mesh=sharding.mesh,
-        in_specs=(
-            PartitionSpec(*b, None),
-            PartitionSpec(*b, None),
-            PartitionSpec(*tensor_spec),
-            PartitionSpec(),
-            PartitionSpec(),
-        ),
-        out_specs=PartitionSpec(*b),
-        check_vma=False,
-    )
-    return body(q0, omega0, tensor, ts, shared)
+    and every leaf of the result is split along its leading batch axes as the batch is
+    (:class:`_ShardLayout`)."""
+    layout = _ShardLayout.of(q0, omega0, tensor, split)
+    return layout.shard_map(fn, *layout.placed(q0, omega0, tensor, ts, shared))
 
 
 def _refuse_split_batch(path: str) -> NoReturn:
@@ -353,8 +434,8 @@ def _refuse_split_batch(path: str) -> NoReturn:
     :func:`jaxquat._threads.split_across_devices`) reaches a path that JAX's explicit sharding
     fails inside (session 70, jax 0.10.2: diffrax's term check and its loop under ``vmap`` raised
     ``ShardingTypeError`` or ``ValueError`` from deep in the solve). The scan path, the closed
-    form (:func:`_closed_form`) and the adaptive path (:func:`_numerical_in_shards`, values only)
-    take such a batch (``tests/test_sharding.py``). Called where the batch is known to be split
+    form (:func:`_closed_form`) and the adaptive path (:func:`_numerical_in_shards`) take such a
+    batch (``tests/test_sharding.py``). Called where the batch is known to be split
     (:func:`_split_argument`)."""
     raise ValueError(
         f"simulate's {path} does not take a batch split between devices by an Explicit mesh "
