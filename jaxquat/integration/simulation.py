@@ -390,8 +390,11 @@ def _pullback_on_auto_axes(fn: Callable, primals: tuple, cotangent: Any) -> tupl
     batch split, and the cotangents placed as their primals are. Not a ``vjp`` per shard inside a
     ``shard_map``: there equinox's closure conversion in diffrax's checkpointed adjoint refused
     its own arguments (constants typed without the manual mesh when converted, with it when
-    called; jax 0.10.2, equinox 0.13). Integer and boolean leaves are not differentiated (their
-    cotangents are ``float0`` zeros), nor are the result's."""
+    called; jax 0.10.2, equinox 0.13; diffrax issue #765). The loops of this backward pass stop
+    on an all-reduced flag: on 2 host devices of a 2-core CPU the gradient of 1000 PD-controlled
+    bodies took 555 ms against 388 ms unsplit (``docs/integrators.md``). Integer and boolean
+    leaves are not differentiated (their cotangents are ``float0`` zeros), nor are the
+    result's."""
     leaves, tree = jax.tree.flatten(primals)
     floating = [jnp.issubdtype(x.dtype, jnp.inexact) for x in leaves]
     ct_leaves = jax.tree.leaves(cotangent)
