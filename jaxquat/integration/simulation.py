@@ -120,9 +120,9 @@ def simulate(
     several devices runs on this path as one SPMD program, each step's branches chosen per
     element. On an Explicit mesh (``jax.make_mesh``'s default) the closed form runs each
     device's shard in a ``jax.shard_map`` of its own, and so does the adaptive path for a batch
-    with one axis (reverse mode through a ``custom_vjp`` whose backward pass runs on the mesh's
-    axes made Auto, as diffrax's adjoint fails inside a ``shard_map``; forward mode is not
-    available there); the fixed-step ``diffeqsolve`` path (an ``adjoint`` given), a
+    with one axis (reverse mode through a ``custom_vjp`` whose backward pass runs the whole
+    batch on every device, as diffrax's adjoint fails inside a ``shard_map``; forward mode is
+    not available there); the fixed-step ``diffeqsolve`` path (an ``adjoint`` given), a
     progress bar and several batch axes refuse the batch with a ``ValueError`` (JAX's explicit
     sharding fails inside diffrax's loop): run those in a ``jax.shard_map``
     (``check_vma=False``), or shard over ``AxisType.Auto`` axes.
@@ -297,10 +297,10 @@ def _numerical_in_shards_body(cfg, q0, omega0, tensor, ts, args, dt0, split: int
     ``shard_map`` replicated, the others are put back beside them on each device.
 
     Reverse mode through a ``custom_vjp`` whose backward pass is the whole batch's ``jax.vjp`` on
-    the mesh's axes made Auto (:func:`_pullback_on_auto_axes`), not JAX's transpose of the
-    forward ``shard_map``, inside which diffrax's adjoint fails (jax 0.10.2, diffrax 0.7: equinox's
-    closure conversion sees other argument types). Forward mode is not available: a ``custom_vjp``
-    has none (nor has diffrax's default adjoint on the unsplit path)."""
+    every device (:func:`_pullback_whole`), not JAX's transpose of the forward ``shard_map``,
+    inside which diffrax's adjoint fails (jax 0.10.2, diffrax 0.7: equinox's closure conversion
+    sees other argument types). Forward mode is not available: a ``custom_vjp`` has none (nor has
+    diffrax's default adjoint on the unsplit path)."""
     import equinox as eqx
 
     from . import numerical_solve
@@ -322,7 +322,7 @@ def _numerical_in_shards_body(cfg, q0, omega0, tensor, ts, args, dt0, split: int
         return run(q0, omega0, tensor, ts, arrays), (q0, omega0, tensor, ts, arrays)
 
     def run_backward(primals, cotangent):
-        return _pullback_on_auto_axes(solve, primals, cotangent)
+        return _pullback_whole(solve, primals, cotangent)
 
     run.defvjp(run_forward, run_backward)
     return run(*layout.placed(q0, omega0, tensor, ts, arrays))
@@ -383,18 +383,21 @@ class _ShardLayout(NamedTuple):
         return body(*placed)
 
 
-def _pullback_on_auto_axes(fn: Callable, primals: tuple, cotangent: Any) -> tuple:
+def _pullback_whole(fn: Callable, primals: tuple, cotangent: Any) -> tuple:
     """The cotangents of ``fn``'s arguments ``primals`` (placed by :meth:`_ShardLayout.placed`)
-    for the ``cotangent`` of its sharded result: ``jax.vjp`` of ``fn`` on the whole batch with the
-    mesh's axes made Auto (``jax.sharding.auto_axes``), where XLA's partitioner keeps the split
-    batch split, and the cotangents placed as their primals are. Not a ``vjp`` per shard inside a
-    ``shard_map``: there equinox's closure conversion in diffrax's checkpointed adjoint refused
-    its own arguments (constants typed without the manual mesh when converted, with it when
-    called; jax 0.10.2, equinox 0.13; diffrax issue #765). The loops of this backward pass stop
-    on an all-reduced flag: on 2 host devices of a 2-core CPU the gradient of 1000 PD-controlled
-    bodies took 555 ms against 388 ms unsplit (``docs/integrators.md``). Integer and boolean
-    leaves are not differentiated (their cotangents are ``float0`` zeros), nor are the
-    result's."""
+    for the ``cotangent`` of its sharded result: ``jax.vjp`` of ``fn`` on the whole batch,
+    replicated on every device of the mesh (its axes made Auto, ``jax.sharding.auto_axes``), the
+    cotangents then placed as their primals are. So a split batch's gradient costs about one
+    device's gradient of the whole batch, and needs its memory on every device.
+
+    Why not split: a ``vjp`` per shard inside a ``shard_map`` fails in diffrax's checkpointed
+    adjoint (equinox's closure conversion refuses its own arguments: constants typed without the
+    manual mesh when converted, with it when called; jax 0.10.2, equinox 0.13, diffrax issue
+    #765), and the same ``vjp`` kept split on Auto axes stops each of its loops on a flag reduced
+    across the devices at every iteration: on 2 and 4 host devices of a 2-core CPU (64 bodies,
+    ``diffrax.Heun``, float32) 13.3 and 20.4 s a gradient against 0.94-1.09 s unsplit, and 1.06
+    and 2.09 s replicated (``docs/integrators.md``). Integer and boolean leaves are not
+    differentiated (their cotangents are ``float0`` zeros), nor are the result's."""
     leaves, tree = jax.tree.flatten(primals)
     floating = [jnp.issubdtype(x.dtype, jnp.inexact) for x in leaves]
     ct_leaves = jax.tree.leaves(cotangent)
@@ -416,8 +419,10 @@ def _pullback_on_auto_axes(fn: Callable, primals: tuple, cotangent: Any) -> tupl
     fixed = [x for x, f in zip(leaves, floating) if not f]
     cts = [c for c, f in zip(ct_leaves, ct_floating) if f]
     shardings = tuple(jax.typeof(x).sharding for x in diff)
-    on_auto_axes = cast(Callable[[Any], tuple], jax.sharding.auto_axes(pulled, out_sharding=shardings))
-    grads = iter(on_auto_axes((diff, fixed, cts)))
+    replicated = NamedSharding(shardings[0].mesh, PartitionSpec())
+    inputs = jax.tree.map(lambda x: jax.sharding.reshard(x, replicated), (diff, fixed, cts))
+    on_auto_axes = cast(Callable[[Any], tuple], jax.sharding.auto_axes(pulled, out_sharding=replicated))
+    grads = iter(jax.sharding.reshard(g, s) for g, s in zip(on_auto_axes(inputs), shardings))
     out = [next(grads) if f else np.zeros(x.shape, jax.dtypes.float0) for x, f in zip(leaves, floating)]
     return tuple(jax.tree.unflatten(tree, out))
 
