@@ -201,32 +201,31 @@ def simulate(
     )
     if cfg.exact and adjoint is None and not progress:
         return _closed_form(q0, omega0, tensor, ts, principal=cfg.principal)
-    if cfg.substeps is None and (split := _split_argument(q0, omega0, "diffeqsolve path")) is not None:
+    split = None if cfg.substeps is not None else _split_argument(q0, omega0, "diffeqsolve path")
+    if split is not None:
         batch = jnp.broadcast_shapes(q0.shape[:-1], omega0.shape[:-1])
         if progress or not numerical_solve.solves_body_by_body(cfg) or len(batch) != 1:
             _refuse_split_batch(
                 "diffeqsolve path with a fixed step (an adjoint given), a progress bar or several batch axes"
             )
-        try:
-            return _numerical_in_shards(cfg, q0, omega0, tensor, ts, args, dt0, split=split)
-        except TypeError as err:  # jvp of its custom_vjp
-            if "custom_vjp" not in str(err):
-                raise
-            raise TypeError(
-                "forward-mode autodiff (jax.jvp, jax.jacfwd) through simulate's adaptive path on a batch split "
-                "between devices by an Explicit mesh is not available (reverse mode is): take the scan path (a "
-                "fixed-step solver with dt0, no adjoint) or the closed form (torque-free, no solver), or an "
-                "unsplit batch with adjoint=diffrax.ForwardMode(); docs/integrators.md, 'Many bodies on a "
-                "multi-core CPU'"
-            ) from err
     try:
+        if split is not None:
+            return _numerical_in_shards(cfg, q0, omega0, tensor, ts, args, dt0, split=split)
         return Simulation(*numerical_solve.solve(cfg, q0, omega0, inertia, shared_inertia, ts, args, dt0))
-    except TypeError as err:  # jvp of the compiled solve meets diffrax's custom_vjp adjoint
+    except TypeError as err:  # jvp of a custom_vjp: diffrax's adjoint, or the split batch's solve
         if "custom_vjp" not in str(err):
             raise
+        if split is None:
+            raise TypeError(
+                "forward-mode autodiff (jax.jvp, jax.jacfwd) through simulate's diffeqsolve path needs "
+                "adjoint=diffrax.ForwardMode(); the default RecursiveCheckpointAdjoint supports reverse mode only"
+            ) from err
         raise TypeError(
-            "forward-mode autodiff (jax.jvp, jax.jacfwd) through simulate's diffeqsolve path needs "
-            "adjoint=diffrax.ForwardMode(); the default RecursiveCheckpointAdjoint supports reverse mode only"
+            "forward-mode autodiff (jax.jvp, jax.jacfwd) through simulate's adaptive path on a batch split "
+            "between devices by an Explicit mesh is not available (reverse mode is): take the scan path (a "
+            "fixed-step solver with dt0, no adjoint) or the closed form (torque-free, no solver), or an "
+            "unsplit batch with adjoint=diffrax.ForwardMode(); docs/integrators.md, 'Many bodies on a "
+            "multi-core CPU'"
         ) from err
 
 
