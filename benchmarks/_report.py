@@ -12,8 +12,8 @@ import time
 import jax
 
 
-def median_time(fn, *args, repeats: int, warmup: int = 2, max_seconds: float = 3.0) -> float:
-    """Median wall time of ``fn(*args)`` after ``warmup`` untimed calls (compile, warm up).
+def samples(fn, *args, repeats: int, warmup: int = 2, max_seconds: float = 3.0) -> list[float]:
+    """Wall times of ``fn(*args)`` after ``warmup`` untimed calls (compile, warm up).
 
     Samples stop after ``repeats`` or once ``max_seconds`` have been spent timing (at least
     one sample): a contender that takes seconds per call (NumPy at 10^6) is timed once or
@@ -26,7 +26,18 @@ def median_time(fn, *args, repeats: int, warmup: int = 2, max_seconds: float = 3
         t0 = time.perf_counter()
         jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    return times
+
+
+def median_time(fn, *args, repeats: int, warmup: int = 2, max_seconds: float = 3.0) -> float:
+    """The median of :func:`samples`."""
+    return statistics.median(samples(fn, *args, repeats=repeats, warmup=warmup, max_seconds=max_seconds))
+
+
+def least_time(fn, *args, repeats: int, warmup: int = 2, max_seconds: float = 3.0) -> float:
+    """The least of :func:`samples`: the figure a disturbance of the machine (another process,
+    this VM's neighbours) leaves alone unless it lasts through every sample."""
+    return min(samples(fn, *args, repeats=repeats, warmup=warmup, max_seconds=max_seconds))
 
 
 def machine() -> str:
