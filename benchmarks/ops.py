@@ -315,7 +315,7 @@ def run(n: int, dtype, repeats: int, grad: bool, numpy: bool = True, rounds: int
                 t_ = least_time(fn, *fn_args, repeats=repeats, warmup=0 if r else 1)
             except Exception:  # e.g. scipy's array-API path under jax.grad
                 t_ = None
-            best[key_] = t_ if not r else min(best[key_], t_)
+            best[key_] = t_ if not r else best[key_] if t_ is None else min(best[key_], t_)
     rows = []
     for op, libs in contenders().items():
         times = {lib: best.get((op, lib)) for lib in libs}
