@@ -4,9 +4,9 @@ numpy-quaternion, as ratios, at several batch sizes, in float32 and float64, and
 Every contender runs in this process on the same inputs, jitted (scipy 1.17's
 ``Rotation`` traces under ``jax.jit`` with ``SCIPY_ARRAY_API=1``), timed after
 compilation with ``block_until_ready()``; the figure is the least of repeated
-runs in three rounds over each table (``run``). The roofline is a jitted element-wise ``a + b`` over two ``(N, 4)``
-arrays, the memory-traffic floor for an op that reads two quaternion arrays and
-writes one.
+runs in three rounds over each table (``run``). The roofline is a jitted
+element-wise ``a + b`` over two ``(N, 4)`` arrays, the memory-traffic floor for
+an op that reads two quaternion arrays and writes one.
 
     python benchmarks/ops.py [--n 1 1000 1000000] [--dtype float32 float64] [--no-grad] [--no-forward]
                              [--no-numpy] [--write docs/benchmarks.md]
@@ -302,20 +302,19 @@ def run(n: int, dtype, repeats: int, grad: bool, numpy: bool = True, rounds: int
         for lib, fn in libs.items():
             if fn is not None:
                 timed[op, lib] = (jax.jit(_grad_of(fn, GRAD_INPUT[op]) if grad else fn), args)
-        ours = libs["jaxquat"] if not grad else _grad_of(libs["jaxquat"], GRAD_INPUT[op])
-        out = jax.eval_shape(ours, *args)
+        out = jax.eval_shape(timed[op, "jaxquat"][0], *args)
         moved = sum(args[i].nbytes for i in READS[op]) + out.size * out.dtype.itemsize
         timed[op, "roofline"] = (_ADD, roofline_inputs(moved, dtype))
-    best: dict = {}
+    found: dict = {key_: [] for key_ in timed}  # each round's least sample
     for r in range(rounds):
         for key_, (fn, fn_args) in timed.items():
-            if r and best[key_] is None:
-                continue
+            if r and not found[key_]:
+                continue  # failed in the first round
             try:
-                t_ = least_time(fn, *fn_args, repeats=repeats, warmup=0 if r else 1)
+                found[key_].append(least_time(fn, *fn_args, repeats=repeats, warmup=0 if r else 1))
             except Exception:  # e.g. scipy's array-API path under jax.grad
-                t_ = None
-            best[key_] = t_ if not r else best[key_] if t_ is None else min(best[key_], t_)
+                pass
+    best = {key_: min(ts) if ts else None for key_, ts in found.items()}
     rows = []
     for op, libs in contenders().items():
         times = {lib: best.get((op, lib)) for lib in libs}
