@@ -162,9 +162,18 @@ def _mostly_small_parts(s: Array) -> tuple[Array, Array, Array]:
     1222 ms (a ``shard_map``, where each device tests its own shard: 2.06 s and 604 ms, 4.57 s and
     1094 ms, the same hour). Under ``AxisType.Auto`` axes the type does not say, and the test
     stays batch-wide."""
+    if not split_across_devices(s):
+        (s,) = _fusion.one_loop([s])
+    return parts_by_batch(s)
+
+
+def parts_by_batch(s: Array) -> tuple[Array, Array, Array]:
+    """``(sinc, cos, d sinc/ds)`` of :func:`_mostly_small_parts` for an ``s`` its caller has already
+    computed in a loop of its own (:func:`jaxquat._fusion.one_loop`): the series alone when every
+    element is below the switch, else the element-wise selection (a ``lax.cond``); split between
+    devices, the selection."""
     if split_across_devices(s):
         return _sinc_cos_of_sq_parts(s)
-    (s,) = _fusion.one_loop([s])
     return jax.lax.cond(jnp.all(s < _TRIG_SWITCH), _series_parts, _sinc_cos_of_sq_parts, s)
 
 
