@@ -72,6 +72,26 @@ def test_gimbal_lock_round_trip(seq):
     assert np.all(np.isfinite(np.asarray(g)))
 
 
+@pytest.mark.parametrize("seq", ["xyz", "ZXZ", "zyx", "XZX"])
+def test_gimbal_lock_is_the_middle_angle_within_ten_eps(seq):
+    """The lock branch (third angle 0, the first carrying the rotation) is taken where the middle
+    angle is within ``10 eps`` of its singular value and not at 1.5 times that: the rule, tested on
+    ``r_cd <= (5 eps) r_ab`` and its mirror, without computing the angle (session 75)."""
+    tol = 10 * float(np.finfo(DTYPE).eps)
+    symmetric = seq[0].lower() == seq[2].lower()
+    singular = [0.0, np.pi] if symmetric else [-np.pi / 2, np.pi / 2]
+    rows, locked = [], []
+    for s in singular:
+        inward = 1.0 if s == singular[0] else -1.0
+        for k in (0.5, 1.5):
+            rows.append([0.7, s + inward * k * tol, -1.1])
+            locked.append(k < 1)
+    q = from_scipy(Rotation.from_euler(seq, np.asarray(rows)).as_quat()).astype(DTYPE)
+    out = np.asarray(_to[seq](np.resize(q, (64, 4))))[: len(q)]
+    np.testing.assert_array_equal(out[:, 2] == 0.0, np.asarray(locked))
+    assert_same_rotation(np.asarray(_from[seq](np.resize(out, (64, 3))))[: len(q)], q, tol=20 * TOL)
+
+
 @given(seeds)
 def test_euler_round_trip_property(seed):
     """64 rows, as ``test_against_scipy``: its compiled programs serve every example here (the
