@@ -311,10 +311,10 @@ def from_rotvec(r: Array) -> Array:
     return _arrays.assemble(*exp_components(_arrays.components(r)))
 
 
-# exp_components' ways of choosing between the series and the direct branch (_safe has each)
+# exp_components' ways of choosing between the series and the direct branch (_safe has each; the third,
+# "derivatives by batch", is _exp_derivatives_by_batch)
 _SINC_COS = {
     "per element": _safe.sinc_cos_of_sq,
-    "derivatives by batch": _safe.sinc_cos_of_sq_mostly_small,
     "by batch": _safe.sinc_cos_of_sq_small_batch,
 }
 
@@ -338,25 +338,23 @@ def exp_components(r: Sequence[Array], branches: str = "per element") -> list[Ar
 
 @jax.custom_jvp
 def _exp_derivatives_by_batch(r0: Array, r1: Array, r2: Array) -> tuple[Array, Array, Array, Array]:
-    """:func:`exp_components` with ``"derivatives by batch"``: the value chosen per element (fused
-    with the rest of a step), the derivatives by the whole batch (:func:`_safe.parts_by_batch`).
+    """:func:`exp_components` with ``"derivatives by batch"``: the value ``"per element"`` (fused
+    with the rest of a step), the derivatives chosen by the whole batch (:func:`_safe.parts_by_batch`).
 
     Its JVP rule computes ``r`` and ``s = |r|^2 / 4`` in one loop
     (:func:`jaxquat._fusion.one_loop`), whose ``s`` is the cond's test and operand and whose ``r``
     the loops after the cond read. Before session 75 the rule was :func:`_safe.sinc_cos_of_sq_mostly_small`'s,
     on ``s`` alone: the loop that made ``s`` for the test (in an RKMK4 step, the last stage and
     the combination of the stages, 121 HLO operations) was evaluated again inside the step's
-    last loop for ``r`` (the ``jvp``'s step 1597 -> 1530 operations in its loops). Measured on
+    last loop for ``r`` (the ``jvp``'s step 1597 -> 1547 operations in its loops). Measured on
     ``simulate``'s scan path (1000 bodies x 1000 RKMK4 steps, one pinned core of a 2-core Intel
     Xeon, least of 31, four processes each, alternated), before -> after: torque-free float32
     gradient 24.1-24.9 -> 22.9-23.7 ms, one ``jvp`` 12.9-14.0 -> 12.6-13.0 ms; float64 53.6-55.8
     -> 48.7-49.9 ms and 24.8-25.7 -> 23.9-24.2 ms; with a PD torque, float32, 71.8-75.3 -> 66.3-70.6
     ms and 30.7-31.4 -> 30.3-31.1 ms; the forward pass the same program. The tangents and
     gradients differ from the earlier rule's by rounding (``ds`` written ``r . dr / 2``)."""
-    s = 0.25 * (r0 * r0 + r1 * r1 + r2 * r2)
-    sinc, cos = _safe.sinc_cos_of_sq_mostly_small(s)
-    h = 0.5 * sinc
-    return cos, h * r0, h * r1, h * r2
+    cos, x, y, z = exp_components((r0, r1, r2), "per element")
+    return cos, x, y, z
 
 
 @_exp_derivatives_by_batch.defjvp

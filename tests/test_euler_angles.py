@@ -76,7 +76,7 @@ def test_gimbal_lock_round_trip(seq):
 def test_gimbal_lock_is_the_middle_angle_within_ten_eps(seq):
     """The lock branch (third angle 0, the first carrying the rotation) is taken where the middle
     angle is within ``10 eps`` of its singular value and not at 1.5 times that: the rule, tested on
-    ``r_cd <= (5 eps) r_ab`` and its mirror, without computing the angle (session 75)."""
+    ``|c, d|^2 <= (5 eps)^2 |a, b|^2`` and its mirror, without computing the angle (session 75)."""
     tol = 10 * float(np.finfo(DTYPE).eps)
     symmetric = seq[0].lower() == seq[2].lower()
     singular = [0.0, np.pi] if symmetric else [-np.pi / 2, np.pi / 2]
