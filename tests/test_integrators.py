@@ -661,9 +661,13 @@ def test_a_batch_larger_than_a_chunk_is_solved_chunk_by_chunk_with_the_same_valu
     ``args``, and closed over by the torque: the solves are closure-converted) and the per-body
     inertia, and a ``jvp`` in the gains are those of the batch solved whole (LieEuler: the
     chunking does not depend on the tableau, and its one stage compiles fastest), and with one
-    tensor shared by the batch the states too."""
+    tensor shared by the batch the states too. The chunks are not padded to the threads' multiple
+    here (``_threads.batch_multiple`` set to 1, as on one thread), so the batches are those on any
+    machine."""
+    from jaxquat import _threads
     from jaxquat.integration import numerical_solve, struct_of_arrays
 
+    monkeypatch.setattr(_threads, "batch_multiple", lambda: 1)
     rng = np.random.default_rng(11)
     q0 = jq.normalize(jnp.asarray(rng.normal(size=(10, 4)), DTYPE))
     w0 = jnp.asarray(rng.normal(size=(10, 3)), DTYPE)
@@ -775,7 +779,9 @@ def test_simulate_s_chunks_with_segmented_steps_are_not_rematerialised_and_agree
     original_segments, original_chunks = fixed_step._in_segments, numerical_solve._in_chunks
     monkeypatch.setattr(fixed_step, "_in_segments", lambda *a: segments.append(a[3]) or original_segments(*a))
     monkeypatch.setattr(
-        numerical_solve, "_in_chunks", lambda *a, remat: remats.append(remat) or original_chunks(*a, remat=remat)
+        numerical_solve,
+        "_in_chunks",
+        lambda *a, remat, **k: remats.append(remat) or original_chunks(*a, remat=remat, **k),
     )
     monkeypatch.setattr(_trig, "_cpu", lambda: True)
     monkeypatch.setattr(fixed_step, "_SEGMENT_BYTES", 0)

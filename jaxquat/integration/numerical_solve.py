@@ -23,8 +23,8 @@ import numpy as np
 from jax import Array
 from jax.custom_derivatives import SymbolicZero
 
-from .. import _checks, _trig
-from .._threads import at_top_level, cpu_compiler_options, in_shard_map
+from .. import _checks, _threads, _trig
+from .._threads import at_top_level, cpu_compiler_options, in_shard_map, split_across_devices
 from ..mechanics.rigid_body import RigidBody
 from ..mechanics.torques import as_body_torque
 from . import fixed_step, principal_frame, struct_of_arrays
@@ -117,6 +117,8 @@ class Config(NamedTuple):
     progress: bool
     # the most bodies per chunk (_in_chunks): the scan path's values, its derivatives, the adaptive path's
     chunks: tuple[int, int, int]
+    # the chunks' sizes (and a batch of one chunk) padded to a multiple of this (_threads.batch_multiple)
+    multiple: int
 
 
 def solve(cfg: Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> tuple[Array, Array, Any]:
@@ -147,9 +149,12 @@ def _one_thread_solve(options: tuple) -> Callable:
 
 def _solve_body(cfg: Config, q0, omega0, inertia, shared_inertia, ts, args, dt0) -> tuple[Array, Array, Any]:
     """:func:`solve`'s program."""
-    solver, torque, torque_frame, principal, substeps, diagonal, exact, rtol, atol, max_steps, adjoint, progress, _ = (
-        cfg
-    )
+    solver, torque, torque_frame, principal = cfg.solver, cfg.torque, cfg.torque_frame, cfg.principal
+    substeps, diagonal, exact, progress = cfg.substeps, cfg.diagonal, cfg.exact, cfg.progress
+    rtol, atol, max_steps, adjoint = cfg.rtol, cfg.atol, cfg.max_steps, cfg.adjoint
+    # not padded where the batch is split between devices (an Explicit mesh): each device's share is
+    # its own, and the concatenation would move bodies between devices
+    multiple = 1 if split_across_devices(q0) or split_across_devices(omega0) else cfg.multiple
     adaptive = _has_error_estimate(solver)
     if exact:
         controller = diffrax.StepTo(ts)
@@ -226,7 +231,11 @@ def _solve_body(cfg: Config, q0, omega0, inertia, shared_inertia, ts, args, dt0)
     flat = [x.reshape((-1,) + x.shape[len(batch) :]) for x in (q0, omega0, inertia)]
     if adaptive:  # each body its own step sizes
         qs, ws, sol = _in_chunks(
-            jax.vmap(lambda q, w, i: one_solve(q, w, i, torque)), cfg.chunks[2], *flat, remat=False
+            jax.vmap(lambda q, w, i: one_solve(q, w, i, torque)),
+            cfg.chunks[2],
+            *flat,
+            remat=False,
+            multiple=multiple,
         )
     else:  # fixed steps: one solve of the stacked batch (diffrax's per-step work is shared)
         per_body = None if torque is None else jax.vmap(torque, in_axes=(None, 0, 0, None))
@@ -246,11 +255,11 @@ def _solve_body(cfg: Config, q0, omega0, inertia, shared_inertia, ts, args, dt0)
             # cost more than it saved (10^5 float32 bodies x 1000 RKMK4 steps, one core: the gradient
             # 3561 ms unsegmented, 4070 ms segmented and rematerialised, 3358 ms segmented alone).
             def chunked(size):
-                state_bytes = 7 * _chunk_size(flat[0].shape[0], size) * flat[0].dtype.itemsize  # q and w
+                state_bytes = 7 * _chunk_size(flat[0].shape[0], size, multiple) * flat[0].dtype.itemsize  # q, w
                 remat = not fixed_step.segment_length(substeps, state_bytes)
-                return functools.partial(_in_chunks, batch_first, size, remat=remat)
+                return functools.partial(_in_chunks, batch_first, size, remat=remat, multiple=multiple)
 
-            qs, ws = _derivatives_in_smaller_chunks(chunked, cfg.chunks[0], cfg.chunks[1], *flat)
+            qs, ws = _derivatives_in_smaller_chunks(chunked, cfg.chunks[0], cfg.chunks[1], multiple, *flat)
             sol = None
     return qs.reshape(batch + (n, 4)), ws.reshape(batch + (n, 3)), sol
 
@@ -258,28 +267,32 @@ def _solve_body(cfg: Config, q0, omega0, inertia, shared_inertia, ts, args, dt0)
 _solve = eqx.filter_jit(_solve_body)
 
 
-def _in_chunks(solve: Callable, size: int, q: Array, w: Array, inertia: Array, remat: bool) -> Any:
+def _in_chunks(solve: Callable, size: int, q: Array, w: Array, inertia: Array, remat: bool, multiple: int = 1) -> Any:
     """``solve(q, w, inertia)`` of a stacked batch (``q`` ``(n, 4)``, ``w`` ``(n, 3)``, ``inertia``
     ``(3, 3)`` shared or ``(n, 3, 3)``; a pytree of results with the batch axis first), solved
     in chunks of at most ``size`` bodies when ``n`` is larger, one after another (``lax.map``),
     so that the arrays of a step stay in cache. ``remat``: each chunk rematerialised whole in
     reverse mode (``jax.checkpoint``), so that a gradient stores one chunk's states at a time,
     not the whole batch's. The batch is padded to whole chunks with copies of its first body,
-    whose results are dropped.
+    whose results are dropped; each chunk holds a multiple of ``multiple`` bodies
+    (:func:`jaxquat._threads.batch_multiple`: XLA's CPU threads split a kernel over an uneven
+    count about three times slower), a batch of one chunk too.
 
     Not ``lax.map(..., batch_size=size)``: it ``vmap``s a one-body function over each chunk (the
     scan path's step is written for a stacked batch; a ``vmap`` of the one-body step took 240 ms
     against its 67 ms, :mod:`jaxquat.integration.struct_of_arrays`), and solves the remainder as
     a second program of another shape (a second compile)."""
     n = q.shape[0]
-    if n <= size:
-        return solve(q, w, inertia)
-    size = _chunk_size(n, size)
+    size = _chunk_size(n, size, multiple)
     count = -(-n // size)
+    if count == 1 and size == n:
+        return solve(q, w, inertia)
     per_body = inertia.ndim == 3
     parts = [q, w, inertia] if per_body else [q, w]
     pad = count * size - n
     parts = [jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad,) + x.shape[1:])]) if pad else x for x in parts]
+    if count == 1:  # one chunk, padded to the multiple
+        return jax.tree.map(lambda x: x[:n], solve(parts[0], parts[1], parts[2] if per_body else inertia))
     # chunk c holds bodies c, c + count, c + 2 count, ...: the batch axis splits as (size, count),
     # so that a batch sharded across devices stays sharded within each chunk
     parts = [jnp.swapaxes(x.reshape((size, count) + x.shape[1:]), 0, 1) for x in parts]
@@ -297,7 +310,13 @@ def _in_chunks(solve: Callable, size: int, q: Array, w: Array, inertia: Array, r
 
 
 def _derivatives_in_smaller_chunks(
-    chunked: Callable[[int], Callable], size: int, derivative_size: int, q: Array, w: Array, inertia: Array
+    chunked: Callable[[int], Callable],
+    size: int,
+    derivative_size: int,
+    multiple: int,
+    q: Array,
+    w: Array,
+    inertia: Array,
 ) -> Any:
     """``chunked(size)(q, w, inertia)`` (the solve in chunks of at most ``size`` bodies,
     :func:`_in_chunks`), whose derivatives (forward mode, and reverse mode by transposing it) are
@@ -309,7 +328,7 @@ def _derivatives_in_smaller_chunks(
     over (a torque's traced gains, ``ts``) becomes an input of the ``custom_jvp``, whose rule would
     otherwise refuse to differentiate with respect to it."""
     n = q.shape[0]
-    if _chunk_size(n, derivative_size) >= _chunk_size(n, size):
+    if _chunk_size(n, derivative_size, multiple) >= _chunk_size(n, size, multiple):
         return chunked(size)(q, w, inertia)
     values, static = eqx.partition(eqx.filter_closure_convert(chunked(size), q, w, inertia), eqx.is_array)
     derivatives, static_d = eqx.partition(
@@ -339,10 +358,11 @@ def _derivatives_in_smaller_chunks(
     return in_chunks(values, derivatives, q, w, inertia)
 
 
-def _chunk_size(n: int, size: int) -> int:
+def _chunk_size(n: int, size: int, multiple: int = 1) -> int:
     """Bodies per chunk of :func:`_in_chunks` for ``n`` bodies and chunks of at most ``size``: equal
-    chunks, as few as fit."""
-    return n if n <= size else -(-n // -(-n // size))
+    chunks, as few as fit, each rounded up to a multiple of ``multiple`` (a chunk may then exceed
+    ``size`` by less than ``multiple``)."""
+    return _threads.padded_batch(n if n <= size else -(-n // -(-n // size)), multiple)
 
 
 class _StackOfCopiesAsBroadcast:
@@ -482,6 +502,7 @@ def configure(
         adjoint,
         progress,
         chunks,
+        _threads.batch_multiple() if in_chunks else 1,
     )
 
 
