@@ -120,11 +120,18 @@ def batch_multiple() -> int:
     bodies 2890 -> 798 ms and 10478 -> 5311 ms. A part count that is not a divisor of this
     multiple (3 of 8 threads, say) still meets the uneven split: the multiple covers every count
     on 2 threads and the power-of-two counts on more."""
+    threads = pool_threads()
+    return 1 if threads <= 1 else math.lcm(threads, 1 << (threads - 1).bit_length())
+
+
+@functools.cache
+def pool_threads() -> int:
+    """The threads XLA's CPU client splits a kernel between: the CPUs this process may run on
+    (``os.sched_getaffinity``, which XLA reads too); 1 on another backend."""
     if jax.default_backend() != "cpu":
         return 1
     affinity = getattr(os, "sched_getaffinity", None)
-    threads = len(affinity(0)) if affinity is not None else os.cpu_count() or 1
-    return 1 if threads <= 1 else math.lcm(threads, 1 << (threads - 1).bit_length())
+    return max(1, len(affinity(0)) if affinity is not None else os.cpu_count() or 1)
 
 
 def padded_batch(n: int, multiple: int | None = None) -> int:

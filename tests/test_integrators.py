@@ -661,13 +661,14 @@ def test_a_batch_larger_than_a_chunk_is_solved_chunk_by_chunk_with_the_same_valu
     ``args``, and closed over by the torque: the solves are closure-converted) and the per-body
     inertia, and a ``jvp`` in the gains are those of the batch solved whole (LieEuler: the
     chunking does not depend on the tableau, and its one stage compiles fastest), and with one
-    tensor shared by the batch the states too. The chunks are not padded to the threads' multiple
-    here (``_threads.batch_multiple`` set to 1, as on one thread), so the batches are those on any
-    machine."""
+    tensor shared by the batch the states too. The chunks are those of one thread here
+    (``_threads.batch_multiple`` and ``pool_threads`` set to 1: no padding, ``_DERIVATIVE_CHUNK``),
+    so the batches are those on any machine."""
     from jaxquat import _threads
     from jaxquat.integration import numerical_solve, struct_of_arrays
 
     monkeypatch.setattr(_threads, "batch_multiple", lambda: 1)
+    monkeypatch.setattr(_threads, "pool_threads", lambda: 1)  # _DERIVATIVE_CHUNK, not its threads' size
     rng = np.random.default_rng(11)
     q0 = jq.normalize(jnp.asarray(rng.normal(size=(10, 4)), DTYPE))
     w0 = jnp.asarray(rng.normal(size=(10, 3)), DTYPE)

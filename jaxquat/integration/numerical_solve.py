@@ -72,6 +72,16 @@ _CHUNK_BYTES = 80_000
 # chunks of 2000 as well cost the forward pass on both cores (float32 684 -> 1245 ms).
 _DERIVATIVE_CHUNK = 2000
 
+# The same where XLA's pool has more than one thread (_threads.pool_threads), which splits each
+# loop of a step between them: larger chunks make fewer, longer kernels to split. Session 76, the
+# same kind of Xeon, 10^5 torque-free bodies x 1000 RKMK4 steps, least of 3, derivative chunks of
+# 2000 -> 10 000 bodies: on both cores float32 gradient 4917-4954 -> 2979 ms, one jvp 2309-2376 ->
+# 1290 ms (5000: 3586 and 1609 ms; 20 000: 3229-3317 and 1313-1360 ms), float64 7399 -> 6765 ms
+# and 3372 -> 2678 ms; on one pinned core float32 2846 -> 2961 ms and 1354 -> 1525 ms (so 2000
+# stays for one thread). With a torque (_TORQUE_CHUNK) chunks of 10 000 cost the forward pass on
+# both cores 2665 -> 4619 ms for the same gradient (12424 -> 12515 ms): not there.
+_DERIVATIVE_CHUNK_THREADS = 10_000
+
 # The scan path's chunks on CPU with a torque, values and derivatives: at most this many bodies.
 # The loops around the torque (struct_of_arrays.EulerEquations) hold more arrays per body than the
 # torque-free step, and the values' chunks overflowed the cache as the derivatives' did. 10^5
@@ -487,7 +497,8 @@ def configure(
     scan_chunk = _SHARD_MAP_CHUNK if in_shard_map() else _CHUNK_BYTES // q0.dtype.itemsize
     if torque is not None:
         scan_chunk = min(scan_chunk, _TORQUE_CHUNK)
-    chunks = (scan_chunk, min(scan_chunk, _DERIVATIVE_CHUNK), _ADAPTIVE_CHUNK) if in_chunks else (q0.size,) * 3
+    derivative_chunk = _DERIVATIVE_CHUNK if _threads.pool_threads() == 1 else _DERIVATIVE_CHUNK_THREADS
+    chunks = (scan_chunk, min(scan_chunk, derivative_chunk), _ADAPTIVE_CHUNK) if in_chunks else (q0.size,) * 3
     return Config(
         solver,
         torque,
