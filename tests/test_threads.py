@@ -202,14 +202,16 @@ def test_the_batch_multiple_is_divided_by_the_threads_and_every_power_of_two_up_
 def test_a_batch_padded_to_the_threads_multiple_gives_the_same_states_and_derivatives(monkeypatch):
     """``simulate`` pads a batch (and on the scan path each chunk) to a multiple of
     ``batch_multiple`` with copies of the first body, and drops their results. Padded to 4
-    (``batch_multiple`` patched) against not padded (1): 7 bodies by the closed form (its
-    gradient in the initial rates too) and with a full tensor per body over a (2, 3) batch (the
-    principal-axes path), and the RKMK4 scan path's states, gradient and ``jvp``, whole (7 -> 8)
-    and in chunks (chunks of at most 3 -> 2 chunks of 4): the scan path's to the bit, the closed
-    form's to rounding, and the solvers did see the padded batches (spies). The closed form's
-    reductions over the saved times are vectorised across bodies, so another body count sums in
-    another order: its states within 8 eps and its gradient within 256 eps of their largest
-    element (measured 1.2 and 8 eps in float32, 0 and 64 eps in float64)."""
+    (``batch_multiple`` patched) against not padded (1): 7 bodies by the closed form and with a
+    full tensor per body over a (2, 3) batch (the principal-axes path), and the scan path's
+    states, gradient and ``jvp`` (``LieEuler``: the padding does not depend on the tableau, and
+    its one stage compiles fastest), whole (7 -> 8) and in chunks (chunks of at most 3 -> 2
+    chunks of 4): the scan path's to the bit, the closed form's to rounding, and the solvers did
+    see the padded batches (spies). The closed form's reductions over the saved times are
+    vectorised across bodies, so another body count sums in another order: its states within 8
+    eps of their largest element (measured 1.2 eps in float32, 0 in float64; its gradient, whose
+    program compiles for seconds, 8 and 64 eps, is left to the scan path's derivatives through
+    the same padding)."""
     from jaxquat import _threads
     from jaxquat.integration import numerical_solve, simulation, struct_of_arrays
 
@@ -225,11 +227,10 @@ def test_a_batch_padded_to_the_threads_multiple_gives_the_same_states_and_deriva
         return jq.simulate(q0, w, diag, ts).q
 
     def scan(w):
-        return jq.simulate(q0, w, diag, ts, solver=jq.RKMK4(), dt0=0.05).q
+        return jq.simulate(q0, w, diag, ts, solver=jq.LieEuler(), dt0=0.05).q
 
     def results():
-        out = [closed(w0), jax.grad(lambda w: jnp.sum(jnp.sin(closed(w))))(w0)]
-        out.append(jq.simulate(q0[:6].reshape(2, 3, 4), w0[:6].reshape(2, 3, 3), tensors, ts).q)
+        out = [closed(w0), jq.simulate(q0[:6].reshape(2, 3, 4), w0[:6].reshape(2, 3, 3), tensors, ts).q]
         out += [scan(w0), jax.grad(lambda w: jnp.sum(jnp.sin(scan(w))))(w0)]
         return out + [jax.jvp(scan, (w0,), (jnp.ones_like(w0),))[1]]
 
@@ -250,11 +251,10 @@ def test_a_batch_padded_to_the_threads_multiple_gives_the_same_states_and_deriva
             assert seen and set(seen) <= {7, 6, 3}, (chunk, seen)
     eps = float(jnp.finfo(DTYPE).eps)
     for chunk in (None, 3):
-        closed_q, closed_grad, principal, *scan_results = runs[4, chunk]
-        for a, b, bound in zip([closed_q, closed_grad, principal], runs[1, chunk][:3], [8, 256, 8], strict=True):
+        for a, b in zip(runs[4, chunk][:2], runs[1, chunk][:2], strict=True):
             assert a.shape == b.shape
-            assert float(jnp.max(jnp.abs(a - b))) <= bound * eps * float(jnp.max(jnp.abs(b))), (chunk, a.shape)
-        for a, b in zip(scan_results, runs[1, chunk][3:], strict=True):
+            assert float(jnp.max(jnp.abs(a - b))) <= 8 * eps * float(jnp.max(jnp.abs(b))), (chunk, a.shape)
+        for a, b in zip(runs[4, chunk][2:], runs[1, chunk][2:], strict=True):
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
