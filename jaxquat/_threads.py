@@ -41,6 +41,7 @@ import math
 import os
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 __all__ = ["cpu_compiler_options"]
@@ -134,11 +135,17 @@ def pool_threads() -> int:
     return max(1, len(affinity(0)) if affinity is not None else os.cpu_count() or 1)
 
 
-def padded_batch(n: int, multiple: int | None = None) -> int:
-    """``n`` bodies rounded up to a multiple of ``multiple`` (:func:`batch_multiple` by default);
-    a single body is left as it is."""
-    m = batch_multiple() if multiple is None else multiple
-    return n if n <= 1 else -(-n // m) * m
+def padded_batch(n: int, multiple: int) -> int:
+    """``n`` bodies rounded up to a multiple of ``multiple`` (:func:`batch_multiple`); a single
+    body is left as it is."""
+    return n if n <= 1 else -(-n // multiple) * multiple
+
+
+def with_copies_of_first(x, total: int):
+    """``x`` (bodies on its first axis) followed by copies of its first body, ``total`` in all:
+    the padding of a batch to :func:`padded_batch`'s size, whose results are dropped."""
+    pad = total - x.shape[0]
+    return jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad,) + x.shape[1:])]) if pad else x
 
 
 def in_shard_map() -> bool:

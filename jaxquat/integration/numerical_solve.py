@@ -299,8 +299,7 @@ def _in_chunks(solve: Callable, size: int, q: Array, w: Array, inertia: Array, r
         return solve(q, w, inertia)
     per_body = inertia.ndim == 3
     parts = [q, w, inertia] if per_body else [q, w]
-    pad = count * size - n
-    parts = [jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad,) + x.shape[1:])]) if pad else x for x in parts]
+    parts = [_threads.with_copies_of_first(x, count * size) for x in parts]
     if count == 1:  # one chunk, padded to the multiple
         return jax.tree.map(lambda x: x[:n], solve(parts[0], parts[1], parts[2] if per_body else inertia))
     # chunk c holds bodies c, c + count, c + 2 count, ...: the batch axis splits as (size, count),

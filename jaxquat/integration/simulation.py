@@ -482,7 +482,7 @@ def _exact_simulate(q0, omega0, inertia, ts, principal: bool, multiple: int = 1)
 
         def flat(x: Array, core: int) -> Array:  # the bodies on one axis, then the copies of the first
             x = jnp.broadcast_to(x, bodies + x.shape[x.ndim - core :]).reshape((n,) + x.shape[x.ndim - core :])
-            return jnp.concatenate([x, jnp.broadcast_to(x[:1], (total - n,) + x.shape[1:])])
+            return _threads.with_copies_of_first(x, total)
 
         tensors = flat(inertia, 2) if inertia.ndim > 2 else inertia
         sim = _exact_simulate(flat(q0, 1), flat(omega0, 1), tensors, ts, principal)
