@@ -4,6 +4,8 @@ and bad input."""
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -172,6 +174,77 @@ def test_legendre_of_several_sets_in_one_loop_is_legendre_of_each():
     grads = [jax.jit(jax.grad(total(fn), argnums=(0, 1)))(a, b) for fn in (el.legendre_joint, _legendre_each)]
     for got, want in zip(*(jax.tree.leaves(g) for g in grads)):
         assert_close(got, want, tol=TOL, what="legendre_joint's gradient")
+
+
+def _legendre_through_the_loop(s, x, y, n):
+    """``legendre`` differentiated by JAX through Carlson's duplication loop (its form before the
+    closed-form derivatives of ``_carlson_unit_z``)."""
+    r_f, r_j = el.carlson(x, y, jnp.ones_like(x), 1 - n * s * s)
+    return s * r_f, s * r_f + n / 3 * s * (s * s) * r_j
+
+
+def _legendre_points():
+    """Amplitudes, parameters and characteristics as the torque-free flow passes them (``n <= 0 <=
+    m < 1``), with the points where ``_carlson_unit_z``'s gaps vanish or nearly (``s = 0``, small
+    ``s``, ``n = 0``, ``m = n = 0``, ``m`` near 1), partial (``x = cos^2 r``) and complete (``s = 1``,
+    ``x = tiny``) integrals: 2 x 96 points."""
+    rng = np.random.default_rng(12)
+    r, m, n = rng.uniform(-1.57, 1.57, 96), rng.uniform(0, 0.99, 96), -rng.uniform(0, 5, 96)
+    r[:8], r[8:16], n[16:24], m[24:32], n[24:32], m[32:40] = 0.0, 1e-3, 0.0, 0.0, 0.0, 1 - 1e-5
+    r[40:48], m[48:56], n[48:56] = np.pi / 2, 1e-4, -1e-4
+    s, c = np.sin(r).astype(NP_DTYPE), np.cos(r).astype(NP_DTYPE)
+    m_, mc_, n_ = (jnp.asarray(v, DTYPE) for v in (m, 1 - m, n))
+    s_, c_ = jnp.asarray(s), jnp.asarray(c)
+    partial = (s_, c_ * c_, el.partial_y(c_, m_, mc_), n_)
+    complete = (jnp.ones_like(s_), jnp.broadcast_to(el.tiny(c_), c_.shape), el.complete_y(mc_, True), n_)
+    return tuple(jnp.concatenate([a, b]) for a, b in zip(partial, complete))
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _legendre_grads(fn, a):
+    """The gradients of ``fn``'s ``F`` and ``Pi`` in each of its four arguments, element by element."""
+    return [jax.vmap(jax.grad(lambda *z, k=k: fn(*z)[k], argnums=(0, 1, 2, 3)))(*a) for k in range(2)]
+
+
+_legendre_jvps = jax.jit(lambda fn, a, t: jax.jvp(fn, a, t)[1], static_argnums=0)
+
+
+def test_legendre_s_closed_form_derivatives_are_those_of_the_carlson_loop():
+    """``legendre``'s derivatives (``_carlson_unit_z``: ``R_D`` with each argument distinguished,
+    taken in the value's loop, then partial fractions and ``R_J``'s homogeneity) are JAX's
+    derivatives through the duplication loop, in ``s, x, y, n``, both modes, finite at every point,
+    including the 0/0 gaps at ``s = 0`` and ``m = n = 0``. Measured: 9.3e-15 (float64) and 4e-6
+    (float32, where the closed form is the closer of the two to float64's) relative to ``1 + |d|``."""
+    a = _legendre_points()
+    got, want = _legendre_grads(el.legendre, a), _legendre_grads(_legendre_through_the_loop, a)
+    for k, name in enumerate(("F", "Pi")):
+        for i, arg in enumerate("sxyn"):
+            g, w = np.asarray(got[k][i], np.float64), np.asarray(want[k][i], np.float64)
+            assert np.all(np.isfinite(g)), (name, arg)
+            assert_close(g / (1 + np.abs(w)), w / (1 + np.abs(w)), tol=TOL, what=f"d{name}/d{arg} (reverse)")
+    t = tuple(jnp.asarray(np.random.default_rng(13).normal(size=x.shape), DTYPE) for x in a)
+    for g, w in zip(_legendre_jvps(el.legendre, a, t), _legendre_jvps(_legendre_through_the_loop, a, t)):
+        g, w = np.asarray(g, np.float64), np.asarray(w, np.float64)
+        assert_close(g / (1 + np.abs(w)), w / (1 + np.abs(w)), tol=TOL, what="legendre's jvp")
+
+
+@pytest.mark.skipif(not X64, reason="second differences need float64")
+def test_legendre_s_second_derivatives_are_those_of_the_carlson_loop():
+    """The closed-form rule is differentiable again (its loop and the element-wise partials): the
+    Hessian of ``Pi`` in ``(s, y, n)`` (forward over forward) at generic points (away from the 0/0
+    gaps, where the rule's guard is a constant) is the loop's."""
+    rng = np.random.default_rng(14)
+    r, m, n = rng.uniform(0.2, 1.4, 4), rng.uniform(0.1, 0.9, 4), -rng.uniform(0.5, 3, 4)
+    s, c = np.sin(r), np.cos(r)
+    a = [jnp.asarray(v) for v in (s, c * c, 1 - m * s * s, n)]
+
+    def hessian(fn):
+        pi = lambda s, y, n, x: fn(s, x, y, n)[1]  # noqa: E731
+        return np.asarray(
+            jax.vmap(jax.jacfwd(jax.jacfwd(pi, argnums=(0, 1, 2)), argnums=(0, 1, 2)))(a[0], a[2], a[3], a[1])
+        )
+
+    assert_close(hessian(el.legendre), hessian(_legendre_through_the_loop), tol=1e-11, what="Pi's Hessian")
 
 
 def test_derivative_in_m_at_and_near_one():

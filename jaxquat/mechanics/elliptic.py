@@ -248,24 +248,76 @@ def carlson(x: Array, y: Array, z: Array, p: Array) -> tuple[Array, Array]:
     each formed in one loop (:mod:`jaxquat._fusion`). Measured (the gradient of ``Pi(n; r | m)``
     at 101 000 points, one core of this 2-core CPU): 192 -> 68 ms in float32, 337 -> 137 ms in
     float64, against 19 / 37 ms for the value; ``simulate``'s closed form (1000 bodies x 101 times)
-    gradient 280 -> 154 ms and 510 -> 283 ms."""
+    gradient 280 -> 154 ms and 510 -> 283 ms. :func:`legendre` differentiates it in closed form
+    instead (:func:`_carlson_unit_z`)."""
+    r_f, r_j, *_ = _carlson(x, y, z, p, with_rd=False)
+    return r_f, r_j
+
+
+def _carlson(x: Array, y: Array, z: Array, p: Array, with_rd: bool) -> tuple[Array, ...]:
+    """:func:`carlson`'s loop; ``with_rd``: also ``R_D(y, z, x)``, ``R_D(z, x, y)`` and
+    ``R_D(x, y, z)`` (each argument in turn the distinguished one), whose sums ride on the same
+    duplication steps: each term is ``3 4^-k / (sqrt(v_k) (v_k + lambda_k))``, as in :func:`rd`."""
     # The loop's inputs and its invariant in one loop (each an XLA kernel of its own otherwise).
     x, y, z, p = jnp.broadcast_arrays(x, y, z, p)
-    x, y, z, p, zero, delta = _fusion.one_loop_both_ways((x, y, z, p, jnp.zeros_like(x), (p - x) * (p - y) * (p - z)))
+    zero = jnp.zeros_like(x)
+    x, y, z, p, zero, delta = _fusion.one_loop_both_ways((x, y, z, p, zero, (p - x) * (p - y) * (p - z)))
+    sums = (zero,) * 3 if with_rd else ()
 
     @jax.checkpoint
     def step(i, carry):
-        x, y, z, p, total = _fusion.one_loop_backward(carry)
+        x, y, z, p, total, *rd_sums = _fusion.one_loop_backward(carry)
         scale = jnp.asarray(0.25, x.dtype) ** i.astype(x.dtype)
         sx, sy, sz, lam = _duplicate(x, y, z)
         sp = _fusion.fusible(jnp.sqrt(p))
         d = (sp + sx) * (sp + sy) * (sp + sz)
         total = total + _fusion.fusible(scale / d) * _rc_one(_fusion.fusible(delta * scale**3 / (d * d)))
-        return _fusion.one_loop_both_ways(((x + lam) / 4, (y + lam) / 4, (z + lam) / 4, (p + lam) / 4, total))
+        rd_sums = [acc + scale / (sv * (v + lam)) for acc, sv, v in zip(rd_sums, (sx, sy, sz), (x, y, z))]
+        return _fusion.one_loop_both_ways(((x + lam) / 4, (y + lam) / 4, (z + lam) / 4, (p + lam) / 4, total, *rd_sums))
 
-    carry = lax.fori_loop(0, _DUPLICATION_STEPS, step, (x, y, z, p, zero))
-    x, y, z, p, total = _fusion.one_loop_backward(carry)
-    return _rf_series(x, y, z), 6 * total + _rj_tail(x, y, z, p)
+    carry = lax.fori_loop(0, _DUPLICATION_STEPS, step, (x, y, z, p, zero, *sums))
+    x, y, z, p, total, *rd_sums = _fusion.one_loop_backward(carry)
+    rds = tuple(3 * acc + _rj_tail(x, y, z, v) for acc, v in zip(rd_sums, (x, y, z)))
+    return (_rf_series(x, y, z), 6 * total + _rj_tail(x, y, z, p), *rds)
+
+
+@jax.custom_jvp
+def _carlson_unit_z(x: Array, y: Array, p: Array) -> tuple[Array, Array]:
+    """``(R_F(x, y, 1), R_J(x, y, 1, p))`` (:func:`carlson`), differentiated in closed form, for
+    :func:`legendre`.
+
+    The partial derivatives are Carlson integrals again (the integral forms differentiated under
+    the sign, then partial fractions): ``dR_F/dv = -R_D_v / 6`` and ``dR_J/dv = (R_J - R_D_v) /
+    (2 (p - v))`` for ``v`` in ``x, y, z``, where ``R_D_v`` is ``R_D`` with ``v`` the distinguished
+    argument; ``dR_J/dp`` follows from ``R_J``'s homogeneity of degree ``-3/2``:
+    ``p dR_J/dp = -3/2 R_J - x dR_J/dx - y dR_J/dy - z dR_J/dz``. The three ``R_D`` come from the
+    value's own loop (:func:`_carlson` ``with_rd``), and the derivatives are element-wise after it:
+    reverse mode stores five arrays and transposes products, instead of the loop's carry at
+    every step and a second loop run backwards (the loop's gradient cost 6.4x its value: 10^6
+    points, float32, this 2-core Intel Xeon).
+
+    ``(R_J - R_D_v) / (p - v)`` is 0/0 at ``p = v`` and loses ``eps / |p - v|`` near it; there it
+    is taken as 0. In :func:`legendre` ``R_J`` is multiplied by ``n s^3``, and with ``x = 1 - s^2``,
+    ``y = 1 - m s^2``, ``z = 1``, ``p = 1 - n s^2`` the gaps are ``(1 - n) s^2``, ``(m - n) s^2``
+    and ``-n s^2``: the lost digits are those of a product with ``s^3`` or ``n`` (the torque-free
+    flow has ``n <= 0 <= m``), so the derivatives of ``F`` and ``Pi`` keep their precision."""
+    return carlson(x, y, jnp.ones_like(x), p)
+
+
+@_carlson_unit_z.defjvp
+def _carlson_unit_z_jvp(primals, tangents):
+    x, y, p = jnp.broadcast_arrays(*primals)
+    dx, dy, dp = (jnp.broadcast_to(t, x.shape) for t in tangents)
+    z = jnp.ones_like(x)
+    r_f, r_j, rd_x, rd_y, rd_z = _carlson(x, y, z, p, with_rd=True)
+
+    def gap_ratio(num, gap):  # num / (2 gap), 0 where the gap is 0 (the prefactor n s^3 is 0 there)
+        safe = gap != 0
+        return jnp.where(safe, num / (2 * jnp.where(safe, gap, 1.0)), 0.0)
+
+    j_x, j_y, j_z = gap_ratio(r_j - rd_x, p - x), gap_ratio(r_j - rd_y, p - y), gap_ratio(r_j - rd_z, p - z)
+    j_p = (-1.5 * r_j - x * j_x - y * j_y - z * j_z) / p
+    return (r_f, r_j), (-(rd_x * dx + rd_y * dy) / 6, j_x * dx + j_y * dy + j_p * dp)
 
 
 def _rj_tail(x: Array, y: Array, z: Array, p: Array) -> Array:
@@ -344,7 +396,7 @@ def legendre(s: Array, x: Array, y: Array, n: Array) -> tuple[Array, Array]:
     for ``|r| <= pi/2``, ``s = sin r``, ``x = cos^2 r`` and ``y = 1 - m sin^2 r`` (one :func:`carlson`
     evaluation). For the partial integrals ``y`` is :func:`partial_y`; for the complete ones
     (``s = 1``) ``x = tiny`` and ``y`` is :func:`complete_y`."""
-    r_f, r_j = carlson(x, y, jnp.ones_like(x), 1 - n * s * s)
+    r_f, r_j = _carlson_unit_z(x, y, 1 - n * s * s)
     f = s * r_f
     return f, f + n / 3 * s * (s * s) * r_j
 
