@@ -123,8 +123,8 @@ def test_incomplete_integrals_unwrap():
     m_, mc_, n_ = (jnp.asarray(x, DTYPE) for x in (m, 1 - m, n))
     # As the torque-free flow forms them: the integrals at the reduced amplitude r, the complete
     # ones (s = 1, x = tiny, y = complete_y), and 2 j of the complete ones added.
-    f_r, pi_r = el.legendre(s, c * c, el.partial_y(c, m_, mc_), n_)
-    f_k, pi_k = el.legendre(jnp.ones_like(s), jnp.broadcast_to(el.tiny(c), c.shape), el.complete_y(mc_, True), n_)
+    f_r, pi_r = el.legendre(s, c, el.partial_y(c, m_, mc_), n_)
+    f_k, pi_k = el.legendre(jnp.ones_like(s), jnp.broadcast_to(el.tiny_cos(c), c.shape), el.complete_y(mc_, True), n_)
     f, pi = 2 * j_in * f_k + f_r, 2 * j_in * pi_k + pi_r
     j = np.round(phi / np.pi)
     r = phi - j * np.pi
@@ -159,7 +159,7 @@ def test_legendre_of_several_sets_in_one_loop_is_legendre_of_each():
     def args(rows):
         phi = rng.uniform(-1.5, 1.5, (rows, 5))
         s, c = np.sin(phi), np.cos(phi)
-        return tuple(jnp.asarray(v, DTYPE) for v in (s, c * c, 1 - m * s * s, -rng.uniform(0, 3, (rows, 5))))
+        return tuple(jnp.asarray(v, DTYPE) for v in (s, c, 1 - m * s * s, -rng.uniform(0, 3, (rows, 5))))
 
     a, b = args(2), args(7)
     a = (*a[:3], a[3][:1])  # n broadcast over the set, as the flow's -nu[None]
@@ -176,18 +176,18 @@ def test_legendre_of_several_sets_in_one_loop_is_legendre_of_each():
         assert_close(got, want, tol=TOL, what="legendre_joint's gradient")
 
 
-def _legendre_through_the_loop(s, x, y, n):
+def _legendre_through_the_loop(s, c, y, n):
     """``legendre`` differentiated by JAX through Carlson's duplication loop (its form before the
     closed-form derivatives of ``_carlson_unit_z``)."""
-    r_f, r_j = el.carlson(x, y, jnp.ones_like(x), 1 - n * s * s)
+    r_f, r_j = el.carlson(c * c, y, jnp.ones_like(c), 1 - n * s * s)
     return s * r_f, s * r_f + n / 3 * s * (s * s) * r_j
 
 
 def _legendre_points():
     """Amplitudes, parameters and characteristics as the torque-free flow passes them (``n <= 0 <=
     m < 1``), with the points where ``_carlson_unit_z``'s gaps vanish or nearly (``s = 0``, small
-    ``s``, ``n = 0``, ``m = n = 0``, ``m`` near 1), partial (``x = cos^2 r``) and complete (``s = 1``,
-    ``x = tiny``) integrals: 2 x 96 points."""
+    ``s``, ``n = 0``, ``m = n = 0``, ``m`` near 1), partial (``c = cos r``) and complete (``s = 1``,
+    ``c = tiny_cos``) integrals: 2 x 96 points."""
     rng = np.random.default_rng(12)
     r, m, n = rng.uniform(-1.57, 1.57, 96), rng.uniform(0, 0.99, 96), -rng.uniform(0, 5, 96)
     r[:8], r[8:16], n[16:24], m[24:32], n[24:32], m[32:40] = 0.0, 1e-3, 0.0, 0.0, 0.0, 1 - 1e-5
@@ -195,8 +195,8 @@ def _legendre_points():
     s, c = np.sin(r).astype(NP_DTYPE), np.cos(r).astype(NP_DTYPE)
     m_, mc_, n_ = (jnp.asarray(v, DTYPE) for v in (m, 1 - m, n))
     s_, c_ = jnp.asarray(s), jnp.asarray(c)
-    partial = (s_, c_ * c_, el.partial_y(c_, m_, mc_), n_)
-    complete = (jnp.ones_like(s_), jnp.broadcast_to(el.tiny(c_), c_.shape), el.complete_y(mc_, True), n_)
+    partial = (s_, c_, el.partial_y(c_, m_, mc_), n_)
+    complete = (jnp.ones_like(s_), jnp.broadcast_to(el.tiny_cos(c_), c_.shape), el.complete_y(mc_, True), n_)
     return tuple(jnp.concatenate([a, b]) for a, b in zip(partial, complete))
 
 
@@ -236,10 +236,10 @@ def test_legendre_s_second_derivatives_are_those_of_the_carlson_loop():
     rng = np.random.default_rng(14)
     r, m, n = rng.uniform(0.2, 1.4, 4), rng.uniform(0.1, 0.9, 4), -rng.uniform(0.5, 3, 4)
     s, c = np.sin(r), np.cos(r)
-    a = [jnp.asarray(v) for v in (s, c * c, 1 - m * s * s, n)]
+    a = [jnp.asarray(v) for v in (s, c, 1 - m * s * s, n)]
 
     def hessian(fn):
-        pi = lambda s, y, n, x: fn(s, x, y, n)[1]  # noqa: E731
+        pi = lambda s, y, n, c: fn(s, c, y, n)[1]  # noqa: E731
         return np.asarray(
             jax.vmap(jax.jacfwd(jax.jacfwd(pi, argnums=(0, 1, 2)), argnums=(0, 1, 2)))(a[0], a[2], a[3], a[1])
         )

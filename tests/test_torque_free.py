@@ -228,6 +228,11 @@ def test_derivatives_at_equal_moments_near_the_middle_axis_and_on_the_separatrix
       saddle's growth): against the RK4 reference (error 1.3e-4 before, 9e-10 now).
     * On the separatrix (I = (3, 4, 6), w0 = (2, 0.5, 1)) and 1e-9 either side: NaN before
       (through simulate: tests/test_integrators.py::test_forward_mode_through_simulate).
+    * A zero initial rate about the axis ``c`` (w0 = (1, 2, 0) and (0.5, 0.5, 0), where ``c`` is
+      the largest axis, and (0, 2, 1), where it is the smallest): the amplitude at time 0 is a
+      quarter turn, ``cos = 0``, where the elliptic integrals' derivative in ``cos^2`` is
+      infinite. NaN in both modes before session 77; the integrals are now differentiated in
+      ``cos`` (``elliptic._carlson_unit_z``).
 
     All at t = 5 from Q0, through the jitted Jacobians the degenerate-state test compiles.
     """
@@ -235,6 +240,8 @@ def test_derivatives_at_equal_moments_near_the_middle_axis_and_on_the_separatrix
         _check_against_differences([0.4, -0.3, 0.9], moments, eps=1e-6, tol=1e-8)
     for shift in (0.0, 1e-9, -1e-9):
         _check_against_differences([2.0, 0.5 + shift, 1.0], [3.0, 4.0, 6.0], eps=1e-6, tol=3e-8)  # measured 5e-9
+    for w0 in ([1.0, 2.0, 0.0], [0.5, 0.5, 0.0], [0.0, 2.0, 1.0]):
+        _check_against_differences(w0, [1.0, 2.0, 3.0], eps=1e-6, tol=1e-8)  # measured 2.6e-9
     # Near the saddle the parametrisation (u0 ~ log(1/p), d u0 / d omega0 ~ 1/p) costs
     # about eps / p relative in the derivative (2e-10 at p = 1e-6; measured 1e-11 with XLA's default
     # code and 2.3e-10 with LLVM optimisation off), hence the bound 2e-9.

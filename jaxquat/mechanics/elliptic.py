@@ -47,6 +47,12 @@ def tiny(x: Array) -> Array:
     return jnp.asarray(jnp.finfo(x.dtype).tiny, x.dtype)
 
 
+def tiny_cos(x: Array) -> Array:
+    """The ``c`` the complete integrals pass :func:`legendre` (``x = c^2`` the smallest normal float
+    in ``x``'s dtype, to rounding, for 0: :func:`complete_y` has why)."""
+    return jnp.sqrt(tiny(x))
+
+
 def agm(m: Array, mc: Array) -> tuple[tuple[Array, Array, Array], Array]:
     """``(a_n, b_n, c_n)`` for ``n = 1..N`` (each stacked on a new leading axis) of the AGM of
     ``(1, sqrt(mc))``, and ``a_N``.
@@ -254,15 +260,20 @@ def carlson(x: Array, y: Array, z: Array, p: Array) -> tuple[Array, Array]:
     return r_f, r_j
 
 
-def _carlson(x: Array, y: Array, z: Array, p: Array, with_rd: bool) -> tuple[Array, ...]:
-    """:func:`carlson`'s loop; ``with_rd``: also ``R_D(y, z, x)``, ``R_D(z, x, y)`` and
-    ``R_D(x, y, z)`` (each argument in turn the distinguished one), whose sums ride on the same
-    duplication steps: each term is ``3 4^-k / (sqrt(v_k) (v_k + lambda_k))``, as in :func:`rd`."""
+def _carlson(x: Array, y: Array, z: Array, p: Array, with_rd: bool, c: Array | None = None) -> tuple[Array, ...]:
+    """:func:`carlson`'s loop; ``with_rd``: also ``c R_D(y, z, x)`` (``c`` with ``c^2 = x``),
+    ``R_D(z, x, y)`` and ``R_D(x, y, z)`` (each argument in turn the distinguished one), whose sums
+    ride on the same duplication steps: each term is ``3 4^-k / (sqrt(v_k) (v_k + lambda_k))``, as
+    in :func:`rd`. ``R_D(y, z, x)`` grows as ``1 / sqrt(x)`` at ``x = 0``; scaled by ``c`` its first
+    term is ``3 sign(c) / (x + lambda_0)`` (``sign(0) = 1``: ``c >= 0``'s side), finite there."""
     # The loop's inputs and its invariant in one loop (each an XLA kernel of its own otherwise).
     x, y, z, p = jnp.broadcast_arrays(x, y, z, p)
     zero = jnp.zeros_like(x)
     x, y, z, p, zero, delta = _fusion.one_loop_both_ways((x, y, z, p, zero, (p - x) * (p - y) * (p - z)))
     sums = (zero,) * 3 if with_rd else ()
+    if with_rd:
+        c = jnp.broadcast_to(c, x.shape)
+        sign_c = jnp.where(c < 0, -1.0, 1.0).astype(x.dtype)
 
     @jax.checkpoint
     def step(i, carry):
@@ -272,19 +283,22 @@ def _carlson(x: Array, y: Array, z: Array, p: Array, with_rd: bool) -> tuple[Arr
         sp = _fusion.fusible(jnp.sqrt(p))
         d = (sp + sx) * (sp + sy) * (sp + sz)
         total = total + _fusion.fusible(scale / d) * _rc_one(_fusion.fusible(delta * scale**3 / (d * d)))
-        rd_sums = [acc + scale / (sv * (v + lam)) for acc, sv, v in zip(rd_sums, (sx, sy, sz), (x, y, z))]
+        if rd_sums:  # c / sqrt(x_k): sign(c) at the first step, where sqrt(x_0) = |c|
+            c_over_sx = jnp.where(i == 0, sign_c, c / jnp.where(sx == 0, 1.0, sx))
+            scaled = (c_over_sx, 1 / sy, 1 / sz)
+            rd_sums = [acc + scale * f / (v + lam) for acc, f, v in zip(rd_sums, scaled, (x, y, z))]
         return _fusion.one_loop_both_ways(((x + lam) / 4, (y + lam) / 4, (z + lam) / 4, (p + lam) / 4, total, *rd_sums))
 
     carry = lax.fori_loop(0, _DUPLICATION_STEPS, step, (x, y, z, p, zero, *sums))
     x, y, z, p, total, *rd_sums = _fusion.one_loop_backward(carry)
-    rds = tuple(3 * acc + _rj_tail(x, y, z, v) for acc, v in zip(rd_sums, (x, y, z)))
+    rds = tuple(3 * acc + f * _rj_tail(x, y, z, v) for acc, f, v in zip(rd_sums, (c, 1.0, 1.0), (x, y, z)))
     return (_rf_series(x, y, z), 6 * total + _rj_tail(x, y, z, p), *rds)
 
 
 @jax.custom_jvp
-def _carlson_unit_z(x: Array, y: Array, p: Array) -> tuple[Array, Array]:
-    """``(R_F(x, y, 1), R_J(x, y, 1, p))`` (:func:`carlson`), differentiated in closed form, for
-    :func:`legendre`.
+def _carlson_unit_z(c: Array, y: Array, p: Array) -> tuple[Array, Array]:
+    """``(R_F(x, y, 1), R_J(x, y, 1, p))`` at ``x = c^2`` (:func:`carlson`), differentiated in
+    closed form, for :func:`legendre`.
 
     The partial derivatives are Carlson integrals again (the integral forms differentiated under
     the sign, then partial fractions): ``dR_F/dv = -R_D_v / 6`` and ``dR_J/dv = (R_J - R_D_v) /
@@ -296,28 +310,35 @@ def _carlson_unit_z(x: Array, y: Array, p: Array) -> tuple[Array, Array]:
     every step and a second loop run backwards (the loop's gradient cost 6.4x its value: 10^6
     points, float32, this 2-core Intel Xeon).
 
+    In ``c``, not ``x``: ``R_D_x`` grows as ``1 / |c|`` and ``dx/dc = 2 c``, so at ``c = 0`` (an
+    amplitude at a quarter turn, as at the start of a body whose rate about the axis ``c`` is 0)
+    the derivative in ``x`` was infinite and that in ``c`` ``inf * 0``: NaN, in JAX's
+    derivatives through the loop as well (whose ``sqrt(x)`` has an infinite derivative at 0).
+    ``c R_D_x`` is formed finite in the loop (:func:`_carlson`).
+
     ``(R_J - R_D_v) / (p - v)`` is 0/0 at ``p = v`` and loses ``eps / |p - v|`` near it; there it
     is taken as 0. In :func:`legendre` ``R_J`` is multiplied by ``n s^3``, and with ``x = 1 - s^2``,
     ``y = 1 - m s^2``, ``z = 1``, ``p = 1 - n s^2`` the gaps are ``(1 - n) s^2``, ``(m - n) s^2``
     and ``-n s^2``: the lost digits are those of a product with ``s^3`` or ``n`` (the torque-free
     flow has ``n <= 0 <= m``), so the derivatives of ``F`` and ``Pi`` keep their precision."""
-    return carlson(x, y, jnp.ones_like(x), p)
+    return carlson(c * c, y, jnp.ones_like(c), p)
 
 
 @_carlson_unit_z.defjvp
 def _carlson_unit_z_jvp(primals, tangents):
-    x, y, p = jnp.broadcast_arrays(*primals)
-    dx, dy, dp = (jnp.broadcast_to(t, x.shape) for t in tangents)
-    z = jnp.ones_like(x)
-    r_f, r_j, rd_x, rd_y, rd_z = _carlson(x, y, z, p, with_rd=True)
+    c, y, p = jnp.broadcast_arrays(*primals)
+    dc, dy, dp = (jnp.broadcast_to(t, c.shape) for t in tangents)
+    x, z = c * c, jnp.ones_like(c)
+    r_f, r_j, c_rd_x, rd_y, rd_z = _carlson(x, y, z, p, with_rd=True, c=c)
 
-    def gap_ratio(num, gap):  # num / (2 gap), 0 where the gap is 0 (the prefactor n s^3 is 0 there)
+    def gap_ratio(num, gap):  # num / gap, 0 where the gap is 0 (the prefactor n s^3 is 0 there)
         safe = gap != 0
-        return jnp.where(safe, num / (2 * jnp.where(safe, gap, 1.0)), 0.0)
+        return jnp.where(safe, num / jnp.where(safe, gap, 1.0), 0.0)
 
-    j_x, j_y, j_z = gap_ratio(r_j - rd_x, p - x), gap_ratio(r_j - rd_y, p - y), gap_ratio(r_j - rd_z, p - z)
-    j_p = (-1.5 * r_j - x * j_x - y * j_y - z * j_z) / p
-    return (r_f, r_j), (-(rd_x * dx + rd_y * dy) / 6, j_x * dx + j_y * dy + j_p * dp)
+    j_c = gap_ratio(c * r_j - c_rd_x, p - x)  # dR_J/dc = 2 c dR_J/dx
+    j_y, j_z = 0.5 * gap_ratio(r_j - rd_y, p - y), 0.5 * gap_ratio(r_j - rd_z, p - z)
+    j_p = (-1.5 * r_j - 0.5 * c * j_c - y * j_y - z * j_z) / p
+    return (r_f, r_j), (-c_rd_x * dc / 3 - rd_y * dy / 6, j_c * dc + j_y * dy + j_p * dp)
 
 
 def _rj_tail(x: Array, y: Array, z: Array, p: Array) -> Array:
@@ -388,21 +409,23 @@ def reduced_amplitude(sn: Array, cn: Array) -> tuple[Array, Array, Array]:
     """``(h, sin r, cos r)`` with ``atan2(sn, cn) = h pi + r``, ``|r| <= pi/2`` (``h`` in -1, 0, 1)."""
     back = cn < 0
     h = jnp.where(back, jnp.where(sn < 0, -1.0, 1.0), 0.0).astype(sn.dtype)
-    return h, jnp.where(back, -sn, sn), jnp.abs(cn)
+    # not abs(cn): at cn = 0 its derivative is 0, which dropped the amplitude's derivative there
+    return h, jnp.where(back, -sn, sn), jnp.where(back, -cn, cn)
 
 
-def legendre(s: Array, x: Array, y: Array, n: Array) -> tuple[Array, Array]:
+def legendre(s: Array, c: Array, y: Array, n: Array) -> tuple[Array, Array]:
     """``F(r | m) = s R_F(x, y, 1)`` and ``Pi(n; r | m) = F + n/3 s^3 R_J(x, y, 1, 1 - n s^2)``
-    for ``|r| <= pi/2``, ``s = sin r``, ``x = cos^2 r`` and ``y = 1 - m sin^2 r`` (one :func:`carlson`
-    evaluation). For the partial integrals ``y`` is :func:`partial_y`; for the complete ones
-    (``s = 1``) ``x = tiny`` and ``y`` is :func:`complete_y`."""
-    r_f, r_j = _carlson_unit_z(x, y, 1 - n * s * s)
+    for ``|r| <= pi/2``, ``s = sin r``, ``c = cos r >= 0``, ``x = c^2`` and ``y = 1 - m sin^2 r`` (one
+    :func:`carlson` evaluation). For the partial integrals ``y`` is :func:`partial_y`; for the
+    complete ones (``s = 1``) ``c`` is :func:`tiny_cos` and ``y`` is :func:`complete_y`. Taken in
+    ``c``, not ``x``, so that the derivatives are finite at ``c = 0`` (:func:`_carlson_unit_z`)."""
+    r_f, r_j = _carlson_unit_z(c, y, 1 - n * s * s)
     f = s * r_f
     return f, f + n / 3 * s * (s * s) * r_j
 
 
 def legendre_joint(*args: tuple[Array, Array, Array, Array]) -> list[tuple[Array, Array]]:
-    """:func:`legendre` of several sets of arguments ``(s, x, y, n)`` (each set broadcast to one
+    """:func:`legendre` of several sets of arguments ``(s, c, y, n)`` (each set broadcast to one
     shape of its own) from one Carlson loop, their elements laid side by side on one axis.
 
     Why: each loop is compiled on its own, and its derivatives too. The torque-free flow needs the

@@ -60,7 +60,7 @@ from .elliptic import (
     quarter_period,
     reduced_amplitude,
     sn_cn_dn,
-    tiny,
+    tiny_cos,
 )
 from .inertia import validated
 
@@ -185,7 +185,7 @@ class _Motion(NamedTuple):
     ec: tuple[Array, ...]
     left: tuple[Array, ...]  # q_0 p_0*, a quaternion
     agm: tuple[tuple[Array, Array, Array], Array]
-    # legendre's (s, x, y) at the amplitude at time 0 and for the complete integrals, each (2,) + B
+    # legendre's (s, c, y) at the amplitude at time 0 and for the complete integrals, each (2,) + B
     start: tuple[Array, Array, Array]
 
     def at_times(self, t: Array) -> _Motion:
@@ -269,7 +269,7 @@ def _motion(q0: Array, w0: list[Array], moments: list[Array], a: Array, b: Array
     # with those at the times, in one Carlson loop (_state_at).
     start = (
         jnp.stack([s0, jnp.ones_like(s0)]),
-        jnp.stack([c0 * c0, jnp.broadcast_to(tiny(c0), c0.shape)]),
+        jnp.stack([c0, jnp.broadcast_to(tiny_cos(c0), c0.shape)]),
         jnp.stack([y0, complete_y(mc, True)]),
     )
     fields.update(rd_complete=complete_rd(mc))
@@ -315,7 +315,7 @@ def _state_at(body: _Motion, t: Array) -> tuple[list[Array], list[Array]]:
     # keeps a margin of a quarter turn; a second Landen descent per time (the unwrapped amplitude)
     # gave the same integers for a fifth more of the forward pass.
     # One Carlson loop for Pi at the times and, per body, F and Pi at time 0 and the complete ones.
-    (f, pi), (_, pi_part) = legendre_joint((*body.start, -body.nu[None]), (st, ct * ct, partial_y(ct, m, mc), -k.nu))
+    (f, pi), (_, pi_part) = legendre_joint((*body.start, -body.nu[None]), (st, ct, partial_y(ct, m, mc), -k.nu))
     # The whole turns of the amplitude at t come from am(u0 + lambda t), u0 = F(am u0) = 2 h0 K + F(r0)
     # (only rounded, so formed without derivatives).
     sg = jax.lax.stop_gradient
