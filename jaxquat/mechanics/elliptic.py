@@ -256,12 +256,12 @@ def carlson(x: Array, y: Array, z: Array, p: Array) -> tuple[Array, Array]:
     float64, against 19 / 37 ms for the value; ``simulate``'s closed form (1000 bodies x 101 times)
     gradient 280 -> 154 ms and 510 -> 283 ms. :func:`legendre` differentiates it in closed form
     instead (:func:`_carlson_unit_z`)."""
-    r_f, r_j, *_ = _carlson(x, y, z, p, with_rd=False)
+    r_f, r_j, *_ = _carlson(x, y, z, p)
     return r_f, r_j
 
 
-def _carlson(x: Array, y: Array, z: Array, p: Array, with_rd: bool, c: Array | None = None) -> tuple[Array, ...]:
-    """:func:`carlson`'s loop; ``with_rd``: also ``c R_D(y, z, x)`` (``c`` with ``c^2 = x``),
+def _carlson(x: Array, y: Array, z: Array, p: Array, c: Array | None = None) -> tuple[Array, ...]:
+    """:func:`carlson`'s loop; with ``c`` (``c^2 = x``): also ``c R_D(y, z, x)``,
     ``R_D(z, x, y)`` and ``R_D(x, y, z)`` (each argument in turn the distinguished one), whose sums
     ride on the same duplication steps: each term is ``3 4^-k / (sqrt(v_k) (v_k + lambda_k))``, as
     in :func:`rd`. ``R_D(y, z, x)`` grows as ``1 / sqrt(x)`` at ``x = 0``; scaled by ``c`` its first
@@ -270,10 +270,9 @@ def _carlson(x: Array, y: Array, z: Array, p: Array, with_rd: bool, c: Array | N
     x, y, z, p = jnp.broadcast_arrays(x, y, z, p)
     zero = jnp.zeros_like(x)
     x, y, z, p, zero, delta = _fusion.one_loop_both_ways((x, y, z, p, zero, (p - x) * (p - y) * (p - z)))
-    sums = (zero,) * 3 if with_rd else ()
-    if with_rd:
-        c = jnp.broadcast_to(c, x.shape)
-        sign_c = jnp.where(c < 0, -1.0, 1.0).astype(x.dtype)
+    sums = () if c is None else (zero,) * 3
+    cs = x if c is None else jnp.broadcast_to(c, x.shape)  # cs and sign_c: read with c given only
+    sign_c = x if c is None else jnp.where(cs < 0, -1.0, 1.0).astype(x.dtype)
 
     @jax.checkpoint
     def step(i, carry):
@@ -284,14 +283,14 @@ def _carlson(x: Array, y: Array, z: Array, p: Array, with_rd: bool, c: Array | N
         d = (sp + sx) * (sp + sy) * (sp + sz)
         total = total + _fusion.fusible(scale / d) * _rc_one(_fusion.fusible(delta * scale**3 / (d * d)))
         if rd_sums:  # c / sqrt(x_k): sign(c) at the first step, where sqrt(x_0) = |c|
-            c_over_sx = jnp.where(i == 0, sign_c, c / jnp.where(sx == 0, 1.0, sx))
+            c_over_sx = jnp.where(i == 0, sign_c, cs / jnp.where(sx == 0, 1.0, sx))
             scaled = (c_over_sx, 1 / sy, 1 / sz)
             rd_sums = [acc + scale * f / (v + lam) for acc, f, v in zip(rd_sums, scaled, (x, y, z))]
         return _fusion.one_loop_both_ways(((x + lam) / 4, (y + lam) / 4, (z + lam) / 4, (p + lam) / 4, total, *rd_sums))
 
     carry = lax.fori_loop(0, _DUPLICATION_STEPS, step, (x, y, z, p, zero, *sums))
     x, y, z, p, total, *rd_sums = _fusion.one_loop_backward(carry)
-    rds = tuple(3 * acc + f * _rj_tail(x, y, z, v) for acc, f, v in zip(rd_sums, (c, 1.0, 1.0), (x, y, z)))
+    rds = tuple(3 * acc + f * _rj_tail(x, y, z, v) for acc, f, v in zip(rd_sums, (cs, 1.0, 1.0), (x, y, z)))
     return (_rf_series(x, y, z), 6 * total + _rj_tail(x, y, z, p), *rds)
 
 
@@ -305,7 +304,7 @@ def _carlson_unit_z(c: Array, y: Array, p: Array) -> tuple[Array, Array]:
     (2 (p - v))`` for ``v`` in ``x, y, z``, where ``R_D_v`` is ``R_D`` with ``v`` the distinguished
     argument; ``dR_J/dp`` follows from ``R_J``'s homogeneity of degree ``-3/2``:
     ``p dR_J/dp = -3/2 R_J - x dR_J/dx - y dR_J/dy - z dR_J/dz``. The three ``R_D`` come from the
-    value's own loop (:func:`_carlson` ``with_rd``), and the derivatives are element-wise after it:
+    value's own loop (:func:`_carlson` given ``c``), and the derivatives are element-wise after it:
     reverse mode stores five arrays and transposes products, instead of the loop's carry at
     every step and a second loop run backwards (the loop's gradient cost 6.4x its value: 10^6
     points, float32, this 2-core Intel Xeon).
@@ -329,7 +328,7 @@ def _carlson_unit_z_jvp(primals, tangents):
     c, y, p = jnp.broadcast_arrays(*primals)
     dc, dy, dp = (jnp.broadcast_to(t, c.shape) for t in tangents)
     x, z = c * c, jnp.ones_like(c)
-    r_f, r_j, c_rd_x, rd_y, rd_z = _carlson(x, y, z, p, with_rd=True, c=c)
+    r_f, r_j, c_rd_x, rd_y, rd_z = _carlson(x, y, z, p, c)
 
     def gap_ratio(num, gap):  # num / gap, 0 where the gap is 0 (the prefactor n s^3 is 0 there)
         safe = gap != 0
