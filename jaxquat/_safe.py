@@ -116,24 +116,6 @@ def _sinc_cos_jvp(parts):
 sinc_cos_of_sq.defjvp(_sinc_cos_jvp(_sinc_cos_of_sq_parts))
 
 
-@jax.custom_jvp
-def sinc_cos_of_sq_mostly_small(s: Array) -> tuple[Array, Array]:
-    """:func:`sinc_cos_of_sq` for arguments nearly always below its series switch (an integrator
-    step's ``|theta|^2 / 4``), the same values. Differentiated (forward mode, and the forward
-    sweep of reverse mode) with the direct branch, the range reduction and polynomials of sin
-    and cos, evaluated only when some element of ``s`` is at or above the switch (``lax.cond``
-    on the whole array; under ``vmap`` both branches run); the undifferentiated value keeps the
-    element-wise selection, which XLA fuses with the rest of a step (a ``cond`` there splits
-    the step's fusions: 5-10 % on ``simulate``'s forward pass). Measured on ``simulate``'s scan
-    path (torque-free, 1000 bodies x 1000 RKMK4 steps, this 2-core EPYC, least of 7, three
-    interleaved processes each, the fast mode): float64 gradient 144-151 -> 137-138 ms and one
-    ``jvp`` tangent 101-103 -> 93 ms; float32 gradient 70-71 ms both ways and ``jvp`` 62-64 -> 58
-    ms; the forward pass is the same program. The range reduction and polynomials of
-    :func:`jaxquat._trig.sincos` were a quarter of that float64 gradient (with the series alone,
-    wrong for large steps: 115 against 152 ms)."""
-    return _sinc_cos_of_sq_parts(s)[:2]
-
-
 def _series_parts(s: Array) -> tuple[Array, Array, Array]:
     """:func:`_sinc_cos_of_sq_parts` for ``s`` below the switch: the series alone (the same values
     as the selection's there, to the bit)."""
@@ -177,14 +159,12 @@ def parts_by_batch(s: Array) -> tuple[Array, Array, Array]:
     return jax.lax.cond(jnp.all(s < _TRIG_SWITCH), _series_parts, _sinc_cos_of_sq_parts, s)
 
 
-sinc_cos_of_sq_mostly_small.defjvp(_sinc_cos_jvp(_mostly_small_parts))
-
-
 @jax.custom_jvp
 def sinc_cos_of_sq_small_batch(s: Array) -> tuple[Array, Array]:
-    """:func:`sinc_cos_of_sq_mostly_small` with the value chosen by the same ``lax.cond`` as its
-    derivatives: the series alone when every element of ``s`` is below the switch, else the
-    per-element selection. The same values and derivatives, to the bit. For the stage attitudes
+    """:func:`sinc_cos_of_sq` for arguments nearly always below its series switch (an integrator
+    step's ``|theta|^2 / 4``), its value and derivatives chosen by one ``lax.cond`` on the whole
+    batch (:func:`_mostly_small_parts`): the series alone when every element of ``s`` is below
+    the switch, else the per-element selection. The same values and derivatives, to the bit. For the stage attitudes
     ``q Exp(theta_i)`` of an RKMK step on CPU (:mod:`jaxquat.integration.struct_of_arrays`),
     where the cond cuts the stage's loop in two but saves the direct branch's square root, range
     reduction, two polynomials and two divisions at three of a step's four exponentials. 1000
