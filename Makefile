@@ -41,26 +41,21 @@ demo: $(STAMP)
 # longest first); xdist's default reorders them by their number of tests, which left one worker
 # finishing alone: the float32 pass's workers ended 13 s apart, 1.6 s apart in this order (one
 # run each, 2-core EPYC).
-# A persistent compilation cache made new for each run (never kept between runs) lets the
-# notebook kernel and the other worker reuse what a worker compiled.
 PYTEST := $(PY) -m pytest -n 2 --dist loadfile --no-loadscope-reorder
-# Compilations of 0.5 s or more are cached (JAX's default: 1 s). Caching every one (the setting
-# until session 35) wrote about 4000 programs per pass, most of them tiny, for hits that save
-# little: tests/test_contract.py and test_euler_angles.py in one process took 121.6-133.3 s
-# against 116.9-122.0 s without a cache and 120.7 s from 1 s up; the float64 pass on two workers
-# 8m52 (16m32 of user CPU) against 9m12 (17m05) caching all (one run each on a 2-core EPYC, a
-# difference within the machine's run-to-run spread).
-CACHED := cache=$$(mktemp -d) && trap 'rm -rf "$$cache"' EXIT && export JAX_COMPILATION_CACHE_DIR="$$cache" \
-	JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0.5 &&
+# No persistent compilation cache (JAX's is off unless asked for). From session 35 to 77 each run
+# made one for its two passes, caching compilations of 0.5 s or more, for the notebook kernel and
+# the other worker to reuse; session 78 found 4 of the 270 programs it wrote read again, each
+# within 3 s of its write, while its keys and writes cost 31.7 s of the float64 pass's 1240 s of
+# test time (2-core Intel Xeon; JAX's compile call timed with and without its backend compile).
 
 test: $(STAMP)
-	$(CACHED) JAX_ENABLE_X64=1 $(PYTEST) && JAX_ENABLE_X64=0 $(PYTEST)
+	JAX_ENABLE_X64=1 $(PYTEST) && JAX_ENABLE_X64=0 $(PYTEST)
 
 test64: $(STAMP)
-	$(CACHED) JAX_ENABLE_X64=1 $(PYTEST)
+	JAX_ENABLE_X64=1 $(PYTEST)
 
 test32: $(STAMP)
-	$(CACHED) JAX_ENABLE_X64=0 $(PYTEST)
+	JAX_ENABLE_X64=0 $(PYTEST)
 
 # ruff's lint rules and its formatter (--check: `ruff format` rewrites; [tool.ruff]) and the type checker ([tool.basedpyright], pyright's basic
 # rules on the package), both from pyproject.toml; .ci/run runs them before the tests, and

@@ -234,7 +234,7 @@ def run_example_in_process(script: str, *args: str) -> str:
 
 def execute_notebook(path) -> None:
     """Run the notebook at ``path`` top to bottom in a fresh kernel (cwd: its folder; the kernel
-    inherits the environment, so the run's persistent compilation cache too); a failing cell
+    inherits the environment, the test worker's XLA flags among it); a failing cell
     raises ``CellExecutionError`` with its traceback."""
     import nbclient
     import nbformat
