@@ -164,10 +164,11 @@ def sinc_cos_of_sq_small_batch(s: Array) -> tuple[Array, Array]:
     """:func:`sinc_cos_of_sq` for arguments nearly always below its series switch (an integrator
     step's ``|theta|^2 / 4``), its value and derivatives chosen by one ``lax.cond`` on the whole
     batch (:func:`_mostly_small_parts`): the series alone when every element of ``s`` is below
-    the switch, else the per-element selection. The same values and derivatives, to the bit. For the stage attitudes
-    ``q Exp(theta_i)`` of an RKMK step on CPU (:mod:`jaxquat.integration.struct_of_arrays`),
-    where the cond cuts the stage's loop in two but saves the direct branch's square root, range
-    reduction, two polynomials and two divisions at three of a step's four exponentials. 1000
+    the switch, else the per-element selection. The same values and derivatives, to the bit.
+    For the stage attitudes ``q Exp(theta_i)`` of an RKMK step on CPU
+    (:mod:`jaxquat.integration.struct_of_arrays`), where the cond cuts the stage's loop in two but
+    saves the direct branch's square root, range reduction, two polynomials and two divisions at
+    three of a step's four exponentials. 1000
     bodies x 1000 RKMK4 steps under the PD law (one core of this 2-core EPYC, least of 7, the
     step's last exponential differentiated through the cond as well): float32 forward 13.4 ->
     12.2 ms, gradient 74.1 -> 62.7 ms, one ``jvp`` 27.8 -> 24.7 ms; float64 28.7 -> 23.4, 175 ->
