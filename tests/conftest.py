@@ -51,6 +51,8 @@ import sys
 from importlib.metadata import version
 
 import pytest
+from _pytest.runner import runtestprotocol
+from frames import deep_frame
 from hypothesis import HealthCheck, settings
 
 
@@ -128,6 +130,17 @@ def pytest_unconfigure(config):
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(0)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_protocol(item, nextitem):
+    """pytest's own protocol for one test (set-up, call, tear-down and their reports:
+    ``_pytest.runner.runtestprotocol``, between the log start and finish hooks as pytest's default
+    does), run from :func:`deep_frame`."""
+    item.ihook.pytest_runtest_logstart(nodeid=item.nodeid, location=item.location)
+    deep_frame(runtestprotocol, item, nextitem=nextitem)
+    item.ihook.pytest_runtest_logfinish(nodeid=item.nodeid, location=item.location)
+    return True
 
 
 # Accidental implicit broadcasting is a bug in library code: make it an error.
