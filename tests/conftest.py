@@ -1,7 +1,7 @@
 """Suite-wide settings: dtype from JAX_ENABLE_X64, strict rank promotion, hypothesis profile,
 XLA's cheaper CPU compilation, one OpenBLAS thread for LAPACK, the garbage collector's threshold,
-the test workers' cores, their exit without JAX's clean-up and the files' order (the last five
-below, at their lines).
+the test workers' cores, each test run from a deep frame (``tests/frames.py``), the workers' exit
+without JAX's clean-up and the files' order (the last six below, at their lines).
 
 XLA compilation is most of the suite's time (52 % of the float64 pass, and 16 % more tracing).
 ``--xla_cpu_use_fusion_emitters=false`` (XLA's older elemental CPU emitters instead of its MLIR
