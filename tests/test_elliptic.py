@@ -124,7 +124,7 @@ def test_incomplete_integrals_unwrap():
     # As the torque-free flow forms them: the integrals at the reduced amplitude r, the complete
     # ones (s = 1, c = tiny_cos, y = complete_y), and 2 j of the complete ones added.
     f_r, pi_r = el.legendre(s, c, el.partial_y(c, m_, mc_), n_)
-    f_k, pi_k = el.legendre(jnp.ones_like(s), jnp.broadcast_to(el.tiny_cos(c), c.shape), el.complete_y(mc_, True), n_)
+    f_k, pi_k = el.legendre(*el.complete_arguments(mc_), n_)
     f, pi = 2 * j_in * f_k + f_r, 2 * j_in * pi_k + pi_r
     j = np.round(phi / np.pi)
     r = phi - j * np.pi
@@ -196,7 +196,7 @@ def _legendre_points():
     m_, mc_, n_ = (jnp.asarray(v, DTYPE) for v in (m, 1 - m, n))
     s_, c_ = jnp.asarray(s), jnp.asarray(c)
     partial = (s_, c_, el.partial_y(c_, m_, mc_), n_)
-    complete = (jnp.ones_like(s_), jnp.broadcast_to(el.tiny_cos(c_), c_.shape), el.complete_y(mc_, True), n_)
+    complete = (*el.complete_arguments(mc_), n_)
     return tuple(jnp.concatenate([a, b]) for a, b in zip(partial, complete))
 
 

@@ -416,8 +416,9 @@ def legendre(s: Array, c: Array, y: Array, n: Array) -> tuple[Array, Array]:
     """``F(r | m) = s R_F(x, y, 1)`` and ``Pi(n; r | m) = F + n/3 s^3 R_J(x, y, 1, 1 - n s^2)``
     for ``|r| <= pi/2``, ``s = sin r``, ``c = cos r >= 0``, ``x = c^2`` and ``y = 1 - m sin^2 r`` (one
     :func:`carlson` evaluation). For the partial integrals ``y`` is :func:`partial_y`; for the
-    complete ones (``s = 1``) ``c`` is :func:`tiny_cos` and ``y`` is :func:`complete_y`. Taken in
-    ``c``, not ``x``, so that the derivatives are finite at ``c = 0`` (:func:`_carlson_unit_z`)."""
+    complete ones (``s = 1``) ``c`` is :func:`tiny_cos` and ``y`` is :func:`complete_y`
+    (:func:`complete_arguments`). Taken in ``c``, not ``x``, so that the derivatives are finite at
+    ``c = 0`` (:func:`_carlson_unit_z`)."""
     r_f, r_j = _carlson_unit_z(c, y, 1 - n * s * s)
     f = s * r_f
     return f, f + n / 3 * s * (s * s) * r_j
@@ -444,6 +445,13 @@ def legendre_joint(*args: tuple[Array, Array, Array, Array]) -> list[tuple[Array
 def partial_y(c: Array, m: Array, mc: Array) -> Array:
     """``1 - m sin^2 r`` formed as ``mc + m cos^2 r`` (no cancellation near ``m = 1``)."""
     return jnp.maximum(mc + m * c * c, 0.0)
+
+
+def complete_arguments(mc: Array) -> tuple[Array, Array, Array]:
+    """:func:`legendre`'s ``(s, c, y)`` for the complete integrals ``K(m)`` and ``Pi(n | m)`` (the
+    amplitude ``r = pi/2``): ``s = 1``, ``c`` :func:`tiny_cos` and ``y`` :func:`complete_y`, each
+    shaped as ``mc = 1 - m``."""
+    return jnp.ones_like(mc), jnp.broadcast_to(tiny_cos(mc), mc.shape), complete_y(mc, True)
 
 
 def complete_y(mc: Array, whole: Array | bool) -> Array:

@@ -53,14 +53,13 @@ from .. import _arrays, _checks, _fusion, _quaternion, _rotation, _trig
 from .elliptic import (
     agm,
     am_given,
+    complete_arguments,
     complete_rd,
-    complete_y,
     legendre_joint,
     partial_y,
     quarter_period,
     reduced_amplitude,
     sn_cn_dn,
-    tiny_cos,
 )
 from .inertia import validated
 
@@ -267,11 +266,7 @@ def _motion(q0: Array, w0: list[Array], moments: list[Array], a: Array, b: Array
     s0, c0, y0 = (fields.pop(name) for name in ("s0", "c0", "y0"))  # used here only
     # The integrals at the amplitude at time 0 and the complete ones (K and Pi(-nu | m)) are taken
     # with those at the times, in one Carlson loop (_state_at).
-    start = (
-        jnp.stack([s0, jnp.ones_like(s0)]),
-        jnp.stack([c0, jnp.broadcast_to(tiny_cos(c0), c0.shape)]),
-        jnp.stack([y0, complete_y(mc, True)]),
-    )
+    start = tuple(jnp.stack(pair) for pair in zip((s0, c0, y0), complete_arguments(mc)))
     fields.update(rd_complete=complete_rd(mc))
     return _Motion(**fields, agm=jax.lax.stop_gradient(agm(m, mc)), start=start)
 
