@@ -266,7 +266,8 @@ def _motion(q0: Array, w0: list[Array], moments: list[Array], a: Array, b: Array
     s0, c0, y0 = (fields.pop(name) for name in ("s0", "c0", "y0"))  # used here only
     # The integrals at the amplitude at time 0 and the complete ones (K and Pi(-nu | m)) are taken
     # with those at the times, in one Carlson loop (_state_at).
-    start = tuple(jnp.stack(pair) for pair in zip((s0, c0, y0), complete_arguments(mc)))
+    sk, ck, yk = complete_arguments(mc)
+    start = (jnp.stack([s0, sk]), jnp.stack([c0, ck]), jnp.stack([y0, yk]))
     fields.update(rd_complete=complete_rd(mc))
     return _Motion(**fields, agm=jax.lax.stop_gradient(agm(m, mc)), start=start)
 
