@@ -168,9 +168,9 @@ def sinc_cos_of_sq_small_batch(s: Array) -> tuple[Array, Array]:
     For the stage attitudes ``q Exp(theta_i)`` of an RKMK step on CPU
     (:mod:`jaxquat.integration.struct_of_arrays`), where the cond cuts the stage's loop in two but
     saves the direct branch's square root, range reduction, two polynomials and two divisions at
-    three of a step's four exponentials. 1000
-    bodies x 1000 RKMK4 steps under the PD law (one core of this 2-core EPYC, least of 7, the
-    step's last exponential differentiated through the cond as well): float32 forward 13.4 ->
+    three of a step's four exponentials. 1000 bodies x 1000 RKMK4 steps under the PD law (one
+    core of this 2-core EPYC, least of 7, the step's last exponential differentiated through the
+    cond as well): float32 forward 13.4 ->
     12.2 ms, gradient 74.1 -> 62.7 ms, one ``jvp`` 27.8 -> 24.7 ms; float64 28.7 -> 23.4, 175 ->
     143 and 53.8 -> 46.6 ms. For the step's last exponential the cond on the value cost more
     than it saved (torque-free, float32 forward 5.8 -> 6.3 ms)."""

@@ -18,12 +18,12 @@ def deep_frame(f, *args, **kwargs):
     ``_PyThreadState_BumpFramePointerSlow``'s (``perf record -e page-faults``, one process,
     float64). This frame's code claims a value stack of 140 000 slots (``co_stacksize``, of which
     its one call uses a few), so calling it opens one 2 MiB chunk and every frame above it fits in
-    the rest (about 0.9 MiB: a stack thousands of frames deep). Measured (session 79, 2-core Intel Xeon, float64 pass
-    on two workers, one run each): its tests' minor page faults 6.23 -> 2.47 million and their
-    system time 129 -> 101 s, the pass 10m12 -> 9m43; the float32 sharding script 501 000 ->
-    256 000 faults and 83.2 -> 81.8 s; a clean clone's ``.ci/run`` 3m49-3m52 -> 2m45 of system
-    time (``docs/benchmarks.md``, session 79). Nothing computed changes: only where CPython puts
-    its frames."""
+    the rest (about 0.9 MiB: a stack thousands of frames deep). Measured (session 79, 2-core Intel
+    Xeon, float64 pass on two workers, one run each): its tests' minor page faults 6.23 -> 2.47
+    million and their system time 129 -> 101 s, the pass 10m12 -> 9m43; the float32 sharding
+    script 501 000 -> 256 000 faults and 83.2 -> 81.8 s; a clean clone's ``.ci/run`` 3m49-3m52 ->
+    2m45-3m17 of system time (``docs/benchmarks.md``, session 79). Nothing computed changes: only
+    where CPython puts its frames."""
     return _DEEP(f, *args, **kwargs)
 
 
