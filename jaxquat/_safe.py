@@ -122,7 +122,7 @@ def _series_parts(s: Array) -> tuple[Array, Array, Array]:
     return _horner(s, _SINC), _horner(s, _COS), _horner(s, _SINC_DERIVATIVE)
 
 
-def _mostly_small_parts(s: Array) -> tuple[Array, Array, Array]:
+def _small_batch_parts(s: Array) -> tuple[Array, Array, Array]:
     """``(sinc, cos, d sinc/ds)`` chosen by the whole batch: :func:`_series_parts` when every
     element of ``s`` is below the switch, else :func:`_sinc_cos_of_sq_parts` (a ``lax.cond``).
     ``s`` passes :func:`jaxquat._fusion.one_loop` first, so that on CPU the batch's test and the
@@ -150,7 +150,7 @@ def _mostly_small_parts(s: Array) -> tuple[Array, Array, Array]:
 
 
 def parts_by_batch(s: Array) -> tuple[Array, Array, Array]:
-    """``(sinc, cos, d sinc/ds)`` of :func:`_mostly_small_parts` for an ``s`` its caller has already
+    """``(sinc, cos, d sinc/ds)`` of :func:`_small_batch_parts` for an ``s`` its caller has already
     computed in a loop of its own (:func:`jaxquat._fusion.one_loop`): the series alone when every
     element is below the switch, else the element-wise selection (a ``lax.cond``); split between
     devices, the selection."""
@@ -163,7 +163,7 @@ def parts_by_batch(s: Array) -> tuple[Array, Array, Array]:
 def sinc_cos_of_sq_small_batch(s: Array) -> tuple[Array, Array]:
     """:func:`sinc_cos_of_sq` for arguments nearly always below its series switch (an integrator
     step's ``|theta|^2 / 4``), its value and derivatives chosen by one ``lax.cond`` on the whole
-    batch (:func:`_mostly_small_parts`): the series alone when every element of ``s`` is below
+    batch (:func:`_small_batch_parts`): the series alone when every element of ``s`` is below
     the switch, else the per-element selection. The same values and derivatives, to the bit.
     For the stage attitudes ``q Exp(theta_i)`` of an RKMK step on CPU
     (:mod:`jaxquat.integration.struct_of_arrays`), where the cond cuts the stage's loop in two but
@@ -174,10 +174,10 @@ def sinc_cos_of_sq_small_batch(s: Array) -> tuple[Array, Array]:
     12.2 ms, gradient 74.1 -> 62.7 ms, one ``jvp`` 27.8 -> 24.7 ms; float64 28.7 -> 23.4, 175 ->
     143 and 53.8 -> 46.6 ms. For the step's last exponential the cond on the value cost more
     than it saved (torque-free, float32 forward 5.8 -> 6.3 ms)."""
-    return _mostly_small_parts(s)[:2]
+    return _small_batch_parts(s)[:2]
 
 
-sinc_cos_of_sq_small_batch.defjvp(_sinc_cos_jvp(_mostly_small_parts))
+sinc_cos_of_sq_small_batch.defjvp(_sinc_cos_jvp(_small_batch_parts))
 
 
 @jax.custom_jvp

@@ -526,7 +526,7 @@ def test_the_scan_path_step_is_one_loop_per_stage_on_cpu():
     ``jvp`` the values and their tangents share each loop (4, not 8); without ``one_loop`` none.
     The exponentials' conds (``struct_of_arrays._branches``): none in the torque-free forward
     pass, one per stage attitude with a torque, one for the last exponential's derivatives; each
-    cond's argument through a loop of its own (``_safe._mostly_small_parts``; for the last
+    cond's argument through a loop of its own (``_safe._small_batch_parts``; for the last
     exponential, with the rotation vector it reads: ``_rotation._exp_derivatives_by_batch``). Counted in the
     lowered program (``jax.export``, no compilation)."""
     from jaxquat.integration import struct_of_arrays as soa

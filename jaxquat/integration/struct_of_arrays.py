@@ -134,7 +134,7 @@ def exp(theta: Comps, branches: str = "derivatives by batch") -> Comps:
     below the series' switch, so by default the derivatives skip the direct branch when the whole
     batch can (a ``lax.cond``). A step compiled as a few loops on CPU chooses per exponential
     (:func:`_branches`); a batch split between devices chooses per element all the same
-    (:func:`jaxquat._safe._mostly_small_parts`)."""
+    (:func:`jaxquat._safe._small_batch_parts`)."""
     return tuple(_rotation.exp_components(theta, branches))
 
 
