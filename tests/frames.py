@@ -21,10 +21,10 @@ def deep_frame(f, *args, **kwargs):
     the rest (about 0.9 MiB: a stack thousands of frames deep). Measured (session 79, 2-core Intel
     Xeon, float64 pass on two workers, one run each): its tests' minor page faults 6.23 -> 2.47
     million and their system time 129 -> 101 s, the pass 10m12 -> 9m43; the float32 sharding
-    script 501 000 -> 256 000 faults and 83.2 -> 81.8 s (session 80: the learned-torque script
-    252 000 -> 163 000 and 19.5 -> 18.4-18.5 s, one pinned core); a clean clone's ``.ci/run`` 3m49-3m52 ->
-    2m45-3m17 of system time (``docs/benchmarks.md``, session 79). Nothing computed changes: only
-    where CPython puts its frames."""
+    script 501 000 -> 256 000 faults and 83.2 -> 81.8 s; a clean clone's ``.ci/run`` 3m49-3m52 ->
+    2m45-3m17 of system time (``docs/benchmarks.md``, session 79); the learned-torque script
+    (session 80, one pinned core) 252 000 -> 163 000 faults and 19.5 -> 18.4-18.5 s. Nothing
+    computed changes: only where CPython puts its frames."""
     return _DEEP(f, *args, **kwargs)
 
 
