@@ -337,7 +337,8 @@ def test_from_matrix_cotangent_in_blocks(monkeypatch):
     m = _matrices(6).reshape(4, 7, 3, 3)
     g = jnp.asarray(np.random.default_rng(6).normal(size=(4, 7, 4)), DTYPE)
     whole = jax.jit(lambda m, g: _rotation._shepperd_cotangent(m, g))(m, g)
-    monkeypatch.setattr(_rotation, "_COTANGENT_ROWS", 8)  # 28 rows: blocks at 0, 8, 16 and 20
+    # blocks of 8 matrices: 28 rows, blocks at 0, 8, 16 and 20
+    monkeypatch.setattr(_rotation, "_COTANGENT_BYTES", 8 * 9 * m.dtype.itemsize)
     blocked = jax.jit(lambda m, g: _rotation._shepperd_cotangent(m, g))(m, g)
     _assert_close(blocked, whole, rtol=64 * EPS)  # other loops, other contractions: a few ulp
     calls = []
