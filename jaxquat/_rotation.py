@@ -199,16 +199,19 @@ def _shepperd_components(m: Array) -> Array:
     return _arrays.assemble(*(c * scale for c in col))
 
 
-# Bytes of matrices whose cotangent is computed at a time (_arrays.rows_at_a_time): 2^13 float32 or
-# 2^12 float64 matrices, so that a block's arrays (the nine entries, the nine results) stay in a
-# core's cache. Session 80 (a 2-core Intel Xeon with 2 MiB of L2 per core, one pinned core, 10^6
-# matrices, the cotangent alone, least of 15 interleaved calls; `make bench`'s GLIBC_TUNABLES /
-# glibc's defaults), with the entries through one loop (_shepperd_cotangent_rows): float32 blocks
-# of 2^11 / 2^12 / 2^13 / 2^15 matrices 13.8 / 13.7 / 13.2 / 15.4 ms and 21.9 / 21.2 / 21.0 /
-# 23.4 ms; float64 2^11 / 2^12 / 2^13 / 2^15: 34.7 / 31.2 / 33.9 / 39.7 ms and 45.5 / 42.0 / 43.4
-# / 49.1 ms. Session 53 (blocks of 2^15 then): 25.5 ms in blocks of 15 625 rows, 26.4 in blocks
-# of 62 500, 40.0 in blocks of 250 000 (36 MB of temporaries a call, each page faulted in).
-_COTANGENT_BYTES = 2**13 * 36
+# Rows of the cotangent computed at a time (_arrays.rows_at_a_time): 2^15 matrices, 1.2 MB of
+# float32 temporaries. At 10^6 in float32 (one core, session 53): 25.5 ms in blocks of 15 625 rows,
+# 26.4 in blocks of 62 500, 40.0 in blocks of 250 000 (36 MB of temporaries a call, each page
+# faulted in). Session 80 (a 2-core Intel Xeon with 2 MiB of L2 per core, 10^6 matrices, the
+# cotangent alone with the entries' loop of _shepperd_cotangent_rows, least of 15 interleaved
+# calls, `make bench`'s GLIBC_TUNABLES), blocks of 2^13 / 2^15 / 2^17 matrices: float32 on one
+# pinned core 13.2 / 15.4 / - ms, on both cores 20.2 / 15.9 / 14.9 ms (XLA splits a long block's
+# loop between the threads); float64 on both cores 34.8 / 32.9 / 29.0 ms. 2^15 stays, between the two.
+_COTANGENT_ROWS = 2**15
+
+# From this many matrices the cotangent's entries pass through a loop of their own
+# (_shepperd_cotangent_rows).
+_ENTRIES_LOOP_ROWS = 2**13
 
 
 def _shepperd_cotangent(m: Array, g: Array) -> Array:
@@ -216,30 +219,30 @@ def _shepperd_cotangent(m: Array, g: Array) -> Array:
     written out: with ``q = s c / |c|`` (``c`` the chosen column, ``s`` its sign), ``c``'s
     cotangent is ``(s / |c|) (g - q (q . g))``; each entry of the column is one entry of ``K + I``,
     a signed sum of entries of ``R``, whose cotangents the nine sums below gather. Computed in
-    one loop (the nine arrays), stacked, in blocks of :data:`_COTANGENT_BYTES` of matrices. JAX's
+    one loop (the nine arrays), stacked, in blocks of :data:`_COTANGENT_ROWS` matrices. JAX's
     ``vjp`` of the component form took 44-46 ms at 10^6 in float32 (one core), of the row form
-    75 ms; this 25-27 ms (session 53), 13.2 ms since session 80 (the entries through a loop of
-    their own, smaller blocks: :func:`_shepperd_cotangent_rows`)."""
+    75 ms; this 25-27 ms (session 53), 15.4 ms since session 80 (the entries through a loop of
+    their own: :func:`_shepperd_cotangent_rows`)."""
     batch = m.shape[:-2]
     flat_m, flat_g = m.reshape((-1, 3, 3)), jnp.broadcast_to(g, batch + (4,)).reshape((-1, 4))
-    rows = max(1, _COTANGENT_BYTES // (9 * flat_m.dtype.itemsize))
-    block = functools.partial(_shepperd_cotangent_rows, entries_loop=flat_m.shape[0] > rows)
-    return _arrays.rows_at_a_time(block, rows, flat_m, flat_g).reshape(batch + (3, 3))
+    block = functools.partial(_shepperd_cotangent_rows, entries_loop=flat_m.shape[0] >= _ENTRIES_LOOP_ROWS)
+    return _arrays.rows_at_a_time(block, _COTANGENT_ROWS, flat_m, flat_g).reshape(batch + (3, 3))
 
 
 def _shepperd_cotangent_rows(m: Array, g: Array, entries_loop: bool = False) -> Array:
-    """:func:`_shepperd_cotangent` on one block. With ``entries_loop`` (a batch longer than one
-    block) the nine entries of ``m`` pass through one loop (:func:`jaxquat._fusion.one_loop`)
-    first: read where they are used, XLA on CPU copied six of them (those read twice) into arrays
-    of their own, a kernel each, strided reads of the whole block six times. Session 80 (10^6
-    matrices, one pinned core of a 2-core Intel Xeon, the cotangent alone, least of 15
-    interleaved calls, `make bench`'s GLIBC_TUNABLES / glibc's defaults): float32 18.9 / 26.3 ->
-    13.2 / 21.0 ms (with the blocks of :data:`_COTANGENT_BYTES`; 15.4 / 23.4 ms in the old blocks
-    of 2^15), float64 53.3 / 62.6 -> 31.2 / 42.0 ms; the same values to the bit. Within one block
-    the loop is one kernel more than it saves: the gradient of ``sum(from_matrix(m) * W)``
-    (least of interleaved calls, loop / without) at 1 matrix 9.5 / 7.4 us in float32 and 9.4 /
-    7.7 us in float64, at 1000 18.0 / 18.3 and 20.1 / 19.5 us, at 4096 43.9 / 47.9 and 54.6 /
-    51.9 us, at 8192 79.0 / 84.0 and 157.7 / 180.3 us."""
+    """:func:`_shepperd_cotangent` on one block. With ``entries_loop`` (a batch of at least
+    :data:`_ENTRIES_LOOP_ROWS` matrices) the nine entries of ``m`` pass through one loop
+    (:func:`jaxquat._fusion.one_loop`) first: read where they are used, XLA on CPU copied six of
+    them (those read twice) into arrays of their own, a kernel each, strided reads of the whole
+    block six times. Session 80 (10^6 matrices, a 2-core Intel Xeon, the cotangent alone in blocks
+    of 2^15 rows, least of 15 interleaved calls, `make bench`'s GLIBC_TUNABLES / glibc's defaults):
+    one pinned core float32 18.9 / 26.3 -> 15.4 / 23.4 ms, float64 53.3 / 62.6 -> 39.7 / 49.1 ms;
+    both cores float32 18.7 / 23.7 -> 15.9 / 20.9 ms, float64 36.9 / 46.2 -> 32.9 / 43.5 ms; the
+    same values to the bit. On a small batch the loop is one kernel more than it saves: the gradient
+    of ``sum(from_matrix(m) * W)`` on one core (least of interleaved calls, loop / without) at 1
+    matrix 9.7 / 7.7 us in float32 and 9.2 / 7.5 us in float64, at 1000 18.2 / 18.6 and 20.3 / 19.6
+    us, at 4096 42.1 / 45.2 and 54.4 / 52.1 us, at 8192 77.3 / 82.7 and 123.8 / 131.3 us, at 20 000
+    184 / 220 and 364 / 407 us."""
     entries = _matrix_entries(m)
     if entries_loop:
         entries = list(_fusion.one_loop(entries))
@@ -281,11 +284,11 @@ def from_matrix_shepperd(m: Array) -> Array:
     least of 9 runs, three processes; before: Shepperd's column in components for all three): the
     value 7.1 -> 4.0 ms in float32 and 40 -> 7.2 ms in float64 (jaxlie 3.5 and 6.6 ms), one
     ``jvp`` 39 -> 7.6-8.2 and 77 -> 14-28 ms, the gradient of ``sum(f(m) * W)`` 47 -> 23-27 and
-    97 -> 41-48 ms. Session 80 (one pinned core of a 2-core Intel Xeon, least of 15, two processes
-    each, alternated; the blocks of :func:`_shepperd_cotangent_rows` with their entries' loop): that
-    gradient 19.3-21.2 -> 12.0-14.6 ms in float32 and 55.9-56.4 -> 28.9-30.1 ms in float64 under
-    ``make bench``'s ``GLIBC_TUNABLES``, 25.6 -> 20.6 and 65.2 -> 39.9 ms under glibc's defaults;
-    at 1 and 1000 matrices unchanged (the same program)."""
+    97 -> 41-48 ms. Session 80 (a 2-core Intel Xeon, ``make bench``'s ``GLIBC_TUNABLES``, least of
+    15, two processes each, alternated; the entries' loop of :func:`_shepperd_cotangent_rows`):
+    that gradient on one pinned core 21.8-24.0 -> 18.4-20.6 ms in float32 and 56.2-59.3 -> 42.5-44.1
+    ms in float64, on both cores 17.5-18.5 -> 14.6-17.4 ms and 35.5-37.5 -> 32.9-33.6 ms; at 1 and
+    1000 matrices unchanged (the same program)."""
     return _derivatives.forward_and_reverse(_shepperd_rows, _shepperd_cotangent, _shepperd_components)(m)
 
 

@@ -331,16 +331,19 @@ def test_from_matrix_forms_on_cpu_only(cpu, monkeypatch):
 
 
 def test_from_matrix_cotangent_in_blocks(monkeypatch):
-    """The cotangent runs over blocks of rows (``_arrays.rows_at_a_time``), the last block
-    overlapping the one before it: the same values as over the whole batch, for a batch of two
-    axes; and a block function over one block or fewer rows is called once, unblocked."""
+    """The cotangent runs over blocks of rows (``_arrays.rows_at_a_time``), the last block overlapping
+    the one before it: the same values as over the whole batch, for a batch of two axes, also with
+    the matrix entries through a loop of their own (a long batch's); and a block function over one
+    block or fewer rows is called once, unblocked."""
     m = _matrices(6).reshape(4, 7, 3, 3)
     g = jnp.asarray(np.random.default_rng(6).normal(size=(4, 7, 4)), DTYPE)
     whole = jax.jit(lambda m, g: _rotation._shepperd_cotangent(m, g))(m, g)
-    # blocks of 8 matrices: 28 rows, blocks at 0, 8, 16 and 20
-    monkeypatch.setattr(_rotation, "_COTANGENT_BYTES", 8 * 9 * m.dtype.itemsize)
+    monkeypatch.setattr(_rotation, "_COTANGENT_ROWS", 8)  # 28 rows: blocks at 0, 8, 16 and 20
     blocked = jax.jit(lambda m, g: _rotation._shepperd_cotangent(m, g))(m, g)
     _assert_close(blocked, whole, rtol=64 * EPS)  # other loops, other contractions: a few ulp
+    monkeypatch.setattr(_rotation, "_ENTRIES_LOOP_ROWS", 1)  # the entries through a loop of their own
+    looped = jax.jit(lambda m, g: _rotation._shepperd_cotangent(m, g))(m, g)
+    _assert_close(looped, whole, rtol=64 * EPS)
     calls = []
     from jaxquat import _arrays
 
