@@ -221,8 +221,9 @@ def _shepperd_cotangent(m: Array, g: Array) -> Array:
     a signed sum of entries of ``R``, whose cotangents the nine sums below gather. Computed in
     one loop (the nine arrays), stacked, in blocks of :data:`_COTANGENT_ROWS` matrices. JAX's
     ``vjp`` of the component form took 44-46 ms at 10^6 in float32 (one core), of the row form
-    75 ms; this 25-27 ms (session 53), 15.4 ms since session 80 (the entries through a loop of
-    their own: :func:`_shepperd_cotangent_rows`)."""
+    75 ms; this 25-27 ms (session 53); since session 80 (the entries through a loop of their own:
+    :func:`_shepperd_cotangent_rows`) 15.4 ms on one core of a 2-core Intel Xeon under ``make
+    bench``'s ``GLIBC_TUNABLES``, 18.9 ms before."""
     batch = m.shape[:-2]
     flat_m, flat_g = m.reshape((-1, 3, 3)), jnp.broadcast_to(g, batch + (4,)).reshape((-1, 4))
     block = functools.partial(_shepperd_cotangent_rows, entries_loop=flat_m.shape[0] >= _ENTRIES_LOOP_ROWS)
