@@ -11,7 +11,6 @@ package (see :mod:`jaxquat._quaternion`).
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Sequence
 
@@ -226,26 +225,25 @@ def _shepperd_cotangent(m: Array, g: Array) -> Array:
     bench``'s ``GLIBC_TUNABLES``, 18.9 ms before."""
     batch = m.shape[:-2]
     flat_m, flat_g = m.reshape((-1, 3, 3)), jnp.broadcast_to(g, batch + (4,)).reshape((-1, 4))
-    block = functools.partial(_shepperd_cotangent_rows, entries_loop=flat_m.shape[0] >= _ENTRIES_LOOP_ROWS)
-    return _arrays.rows_at_a_time(block, _COTANGENT_ROWS, flat_m, flat_g).reshape(batch + (3, 3))
+    return _arrays.rows_at_a_time(_shepperd_cotangent_rows, _COTANGENT_ROWS, flat_m, flat_g).reshape(batch + (3, 3))
 
 
-def _shepperd_cotangent_rows(m: Array, g: Array, entries_loop: bool = False) -> Array:
-    """:func:`_shepperd_cotangent` on one block. With ``entries_loop`` (a batch of at least
-    :data:`_ENTRIES_LOOP_ROWS` matrices) the nine entries of ``m`` pass through one loop
-    (:func:`jaxquat._fusion.one_loop`) first: read where they are used, XLA on CPU copied six of
-    them (those read twice) into arrays of their own, a kernel each, strided reads of the whole
-    block six times. Session 80 (10^6 matrices, a 2-core Intel Xeon, the cotangent alone in blocks
-    of 2^15 rows, least of 15 interleaved calls, `make bench`'s GLIBC_TUNABLES / glibc's defaults):
-    one pinned core float32 18.9 / 26.3 -> 15.4 / 23.4 ms, float64 53.3 / 62.6 -> 39.7 / 49.1 ms;
-    both cores float32 18.7 / 23.7 -> 15.9 / 20.9 ms, float64 36.9 / 46.2 -> 32.9 / 43.5 ms; the
-    same values to the bit. On a small batch the loop is one kernel more than it saves: the gradient
-    of ``sum(from_matrix(m) * W)`` on one core (least of interleaved calls, loop / without) at 1
-    matrix 9.7 / 7.7 us in float32 and 9.2 / 7.5 us in float64, at 1000 18.2 / 18.6 and 20.3 / 19.6
-    us, at 4096 42.1 / 45.2 and 54.4 / 52.1 us, at 8192 77.3 / 82.7 and 123.8 / 131.3 us, at 20 000
-    184 / 220 and 364 / 407 us."""
+def _shepperd_cotangent_rows(m: Array, g: Array) -> Array:
+    """:func:`_shepperd_cotangent` on one block. In a block of at least :data:`_ENTRIES_LOOP_ROWS`
+    matrices (a batch that long: a block is the whole batch or :data:`_COTANGENT_ROWS` rows of it)
+    the nine entries of ``m`` pass through one loop (:func:`jaxquat._fusion.one_loop`) first: read
+    where they are used, XLA on CPU copied six of them (those read twice) into arrays of their own,
+    a kernel each, strided reads of the whole block six times. Session 80 (10^6 matrices, a 2-core
+    Intel Xeon, the cotangent alone in blocks of 2^15 rows, least of 15 interleaved calls, `make
+    bench`'s GLIBC_TUNABLES / glibc's defaults): one pinned core float32 18.9 / 26.3 -> 15.4 / 23.4
+    ms, float64 53.3 / 62.6 -> 39.7 / 49.1 ms; both cores float32 18.7 / 23.7 -> 15.9 / 20.9 ms,
+    float64 36.9 / 46.2 -> 32.9 / 43.5 ms; the same values to the bit. On a small batch the loop is
+    one kernel more than it saves: the gradient of ``sum(from_matrix(m) * W)`` on one core (least of
+    interleaved calls, loop / without) at 1 matrix 9.7 / 7.7 us in float32 and 9.2 / 7.5 us in
+    float64, at 1000 18.2 / 18.6 and 20.3 / 19.6 us, at 4096 42.1 / 45.2 and 54.4 / 52.1 us, at 8192
+    77.3 / 82.7 and 123.8 / 131.3 us, at 20 000 184 / 220 and 364 / 407 us."""
     entries = _matrix_entries(m)
-    if entries_loop:
+    if m.shape[0] >= _ENTRIES_LOOP_ROWS:
         entries = list(_fusion.one_loop(entries))
     col, scale = _shepperd_column(entries)
     q = [c * scale for c in col]
