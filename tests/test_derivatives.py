@@ -1,10 +1,11 @@
-"""The one-loop derivative kernels (``jaxquat._derivatives``) of ``to_rotvec``, ``slerp`` and
-``to_euler``: the tangents, cotangents and second derivatives they give must be JAX's own
-derivatives of the same op (the undecorated kernel, differentiated operation by operation through
-its closed-form scalar rules), at random and singular points, under every transform; and they
-must compile as one loop on CPU and not exist elsewhere. Also ``from_matrix`` on CPU
-(``forward_and_reverse``): its row form, its component form and its written-out cotangent are one
-function, its tangent and cotangent each other's transpose."""
+"""The one-loop derivative kernels (``jaxquat._derivatives``) of ``to_rotvec``, ``slerp``,
+``to_euler`` and the minimal rotation between two directions (``align_vectors`` of one pair): the
+tangents, cotangents and second derivatives they give must be JAX's own derivatives of the same op
+(the undecorated kernel, differentiated operation by operation through its closed-form scalar
+rules), at random and singular points, under every transform; and they must compile as one loop on
+CPU and not exist elsewhere. Also ``from_matrix`` on CPU (``forward_and_reverse``): its row form,
+its component form and its written-out cotangent are one function, its tangent and cotangent each
+other's transpose."""
 
 import functools
 import re
@@ -40,7 +41,20 @@ def _ops():
             jnp.asarray(rng.uniform(-0.5, 1.5, n), DTYPE),
         )
 
+    def vector_pairs(seed, n=16):
+        """Random pairs, antiparallel ones (three along a coordinate axis, where the axis of the
+        half turn switches), parallel ones and one nearly antiparallel."""
+        rng = np.random.default_rng(seed + 3)
+        a, b = rng.normal(size=(2, max(n, 9), 3))
+        b[1:4] = [[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
+        a[1:6] = -2.0 * b[1:6]
+        a[6:8] = 0.5 * b[6:8]
+        a[8] = -b[8] + 0.1 * rng.normal(size=3)
+        a, b = a[:n], b[:n]  # row 0 and rows from 9 on random pairs
+        return jnp.asarray(a, DTYPE), jnp.asarray(b, DTYPE)
+
     return {
+        "minimal_rotation": (_rotation.minimal_rotation, _rotation._minimal_rotation, vector_pairs),
         "to_rotvec": (
             lambda q: _rotation.to_rotvec(q, rescale=True),
             lambda q: _rotation._to_rotvec(q, rescale=True),

