@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from hypothesis import given
+from jax.test_util import check_grads
 from scipy.spatial.transform import Rotation, Slerp
 
 import jaxquat as jq
@@ -128,8 +129,6 @@ def test_align_single_pairs_rotate_b_onto_a_by_the_angle_between_them(seed):
 
 @pytest.mark.skipif(not X64, reason="finite differences in float64")
 def test_align_single_pair_gradients_against_finite_differences():
-    from jax.test_util import check_grads
-
     rng = np.random.default_rng(5)
     a, b = (jnp.asarray(x, DTYPE) for x in rng.normal(size=(2, 4, 1, 3)))
     check_grads(jq.align_vectors, (a, b), order=1, modes=("fwd", "rev"), eps=1e-6)
