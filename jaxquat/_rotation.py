@@ -241,7 +241,16 @@ def _shepperd_cotangent_rows(m: Array, g: Array) -> Array:
     one kernel more than it saves: the gradient of ``sum(from_matrix(m) * W)`` on one core (least of
     interleaved calls, loop / without) at 1 matrix 9.7 / 7.7 us in float32 and 9.2 / 7.5 us in
     float64, at 1000 18.2 / 18.6 and 20.3 / 19.6 us, at 4096 42.1 / 45.2 and 54.4 / 52.1 us, at 8192
-    77.3 / 82.7 and 123.8 / 131.3 us, at 20 000 184 / 220 and 364 / 407 us."""
+    77.3 / 82.7 and 123.8 / 131.3 us, at 20 000 184 / 220 and 364 / 407 us.
+
+    For one matrix the nine cotangent entries are stacked as they are, without
+    :func:`jaxquat._fusion.one_loop`: at one matrix its loop (a variadic ``reduce``) cost more than
+    the kernels it saves. Session 82 (one core of a 2-core AMD EPYC, least of 3000 interleaved calls,
+    the gradient of ``sum(from_matrix(m) * [0, 1, 2, 3])``, loop / stack, float32 and float64 alike):
+    1 matrix 8.5 / 6.2 us (jaxlie 6.5 us); 8 matrices 8.9 / 13.2 us, 16 14.9 / 13.7 us, 128 14.1 /
+    15.2 us, 1000 20.5 / 34.0 us: from 8 matrices on the stack does not win reliably. The gradient of
+    ``sum(from_matrix(m))`` at one matrix (the ops table's batch-1 cell) 8.6 -> 5.3 us in float32 against jaxlie's
+    5.7 us, 5.6 us in float64 against 6.0 us."""
     entries = _matrix_entries(m)
     if m.shape[0] >= _ENTRIES_LOOP_ROWS:
         entries = list(_fusion.one_loop(entries))
@@ -270,6 +279,8 @@ def _shepperd_cotangent_rows(m: Array, g: Array) -> Array:
         k01 + k23,
         d[0] - d[1] - d[2] + d[3],
     ]
+    if m.shape[0] == 1:  # one matrix: the loop is the slower kernel (see above)
+        return jnp.stack(ct, axis=-1).reshape(m.shape)
     return jnp.stack(_fusion.one_loop(ct), axis=-1).reshape(m.shape)
 
 

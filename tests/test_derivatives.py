@@ -308,6 +308,20 @@ def test_from_matrix_forms_are_one_function(seed):
     assert abs(inner[0] - inner[1]) <= RTOL * max(1.0, abs(inner[0])), inner
 
 
+def test_from_matrix_cotangent_of_one_matrix_is_that_of_a_batch():
+    """One matrix takes its own cotangent form (the nine entries stacked without a loop): the same
+    gradient as that matrix's row of a batch, and JAX's derivative of the component form, at the
+    identity or a half turn, on the cases' boundaries and at random rotations."""
+    m = _matrices(6)
+    w = jnp.asarray(np.random.default_rng(6).normal(size=m.shape[:-2] + (4,)), DTYPE)
+    both, reverse = _from_matrix_derivatives()
+    batch = both(m, m, w)[2]
+    for i in range(len(m)):
+        one = both(m[i : i + 1], m[i : i + 1], w[i : i + 1])[2]
+        _assert_close(one, batch[i : i + 1])
+        _assert_close(one, reverse(m[i : i + 1], m[i : i + 1], w[i : i + 1])[2])
+
+
 @pytest.mark.skipif(not X64, reason="second derivatives compared in float64")
 def test_from_matrix_two_forms_under_transforms():
     """``jacfwd`` (the row form's tangents) equals ``jacrev`` (the written-out cotangents) at the
