@@ -250,7 +250,12 @@ def _shepperd_cotangent_rows(m: Array, g: Array) -> Array:
     1 matrix 8.5 / 6.2 us (jaxlie 6.5 us); 8 matrices 8.9 / 13.2 us, 16 14.9 / 13.7 us, 128 14.1 /
     15.2 us, 1000 20.5 / 34.0 us: from 8 matrices on the stack does not win reliably. The gradient of
     ``sum(from_matrix(m))`` at one matrix (the ops table's batch-1 cell) 8.6 -> 5.3 us in float32 against jaxlie's
-    5.7 us, 5.6 us in float64 against 6.0 us."""
+    5.7 us, 5.6 us in float64 against 6.0 us. Not in ``one_loop`` itself (its CPU lowering the
+    identity for one-element arrays, measured in session 82, one core, least of 1500 interleaved
+    calls, float32, gradients, loop / identity, the same values to the bit): ``from_matrix`` 9.0 /
+    6.2 us, ``to_euler`` 6.6 / 6.0, ``slerp`` 9.5 / 8.8, ``to_rotvec`` 6.8 / 6.1, but one single-pair
+    ``align_vectors`` problem in a batch of one 10.0 / 16.3 us (its six-output cotangent split into
+    kernels of their own): it needs a rule for which kernels gain."""
     entries = _matrix_entries(m)
     if m.shape[0] >= _ENTRIES_LOOP_ROWS:
         entries = list(_fusion.one_loop(entries))
@@ -281,7 +286,7 @@ def _shepperd_cotangent_rows(m: Array, g: Array) -> Array:
     ]
     if m.shape[0] == 1:  # one matrix: the loop is the slower kernel (see above)
         return jnp.stack(ct, axis=-1).reshape(m.shape)
-    return jnp.stack(_fusion.one_loop(ct), axis=-1).reshape(m.shape)
+    return _arrays.stack_in_one_loop(ct).reshape(m.shape)
 
 
 def from_matrix_shepperd(m: Array) -> Array:
