@@ -148,6 +148,40 @@ _legendre_apart = jax.jit(_legendre_each)
 _legendre_joint = jax.jit(lambda a, b: tuple(el.legendre_joint(a, b)))
 
 
+@pytest.mark.parametrize("times", [2, 10])
+def test_amplitude_of_per_body_agm_is_that_of_the_agm_at_every_time(times):
+    """``amplitude`` with an AGM per body shared by its times (rank-aligned, as the torque-free
+    flow passes it) is the amplitude with the AGM broadcast to every time; from 4 times on the loop
+    runs with the times' axis first (``_shared_axes_first``), at 2 times in the given order, and
+    both ways agree with ``ellipj`` (scipy's convention) to rounding."""
+    rng = np.random.default_rng(times)
+    bodies = 40
+    m = jnp.asarray(rng.uniform(0, 0.99, bodies), DTYPE)
+    u = jnp.asarray(rng.uniform(-25, 25, (bodies, times)), DTYPE)
+    steps, a_last = el.agm(m, 1 - m)
+    shared = jax.jit(el.amplitude)(u, tuple(x[..., None] for x in steps), a_last[..., None])
+    full = tuple(jnp.broadcast_to(x[..., None], x.shape + (times,)) for x in steps)
+    each = jax.jit(el.amplitude)(u, full, jnp.broadcast_to(a_last[..., None], u.shape))
+    assert el._shared_axes_first(u.shape, (bodies, 1)) == (None if times < 4 else (1, 0))
+    assert el._shared_axes_first(u.shape, (bodies, times)) is None
+    assert shared.shape == u.shape
+    assert_close(shared, each, tol=TOL * 25, what="amplitude, shared AGM")
+    assert_close(shared, _ellipj(u, jnp.broadcast_to(m[:, None], u.shape))[3], tol=TOL * 25 * 25, what="am")
+
+
+def test_shared_axes_first_orders_the_longer_axes_last():
+    """The loop order of ``amplitude``: shared axes (size 1 in the AGM) first where they are at
+    least 4 long and shorter than the rest; otherwise the order as given."""
+    order = el._shared_axes_first
+    assert order((1000, 101), (1000, 1)) == (1, 0)
+    assert order((1000, 3), (1000, 1)) is None  # under 4 times
+    assert order((10, 101), (10, 1)) is None  # more times than bodies
+    assert order((70, 5, 6), (70, 1, 1)) == (1, 2, 0)
+    assert order((7, 5, 6), (7, 1, 1)) is None  # 30 times, 7 bodies
+    assert order((8, 1, 6), (8, 1, 1)) == (2, 0, 1)  # a size-1 axis counts with the bodies'
+    assert order((5,), (5,)) is None
+
+
 def test_legendre_of_several_sets_in_one_loop_is_legendre_of_each():
     """``legendre_joint`` (one Carlson loop for sets of different shapes, as the torque-free flow
     takes its per-body and per-time integrals) gives each set's ``legendre``, values and
