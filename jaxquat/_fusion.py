@@ -158,13 +158,13 @@ def _merged(*xs: Array) -> list[Array]:
 # loop emitter vectorises a reduce's output along its last axis only: on a (10^5, 2) array (10^5
 # bodies at 2 saved times) the loop ran a vector lane or two wide. Measured (session 83, one core of
 # a 2-core AMD EPYC with AVX-512, float32, least of 10): elliptic.rd's 16-step loop over (10^5, 2)
-# 15.2 -> 2.9 ms (2.8 ms over (2 x 10^5,)); carlson's 90 -> 13 ms; simulate's closed form at 10^5
-# bodies x 2 times (with elliptic.rd flattened as well), one jvp 125-131 -> 110-117 ms, the
-# gradient 174-187 -> 165-168 ms, the forward pass unchanged (77-82 ms); in float64 forward 200 ->
-# 177, gradient 389 -> 331, jvp 298 -> 251 ms; at 1000 x 2 forward 0.6 -> 0.5, gradient 0.9 -> 0.7
-# ms. Not for longer axes: flattened, an operand broadcast along an axis is read through a computed
-# index, and the closed form's 3-column jacfwd at 1000 bodies x 10 times went 3.4 -> 4.2 ms (x 101:
-# 20 -> 31 ms).
+# 15.2 -> 2.9 ms (2.8 ms over (2 x 10^5,)); carlson's 90 -> 13 ms. simulate's closed form at 10^5
+# bodies x 2 times, with elliptic.rd flattened as well (least of 5, four processes alternated):
+# one jvp 126-140 -> 115-119 ms, the gradient 182-191 -> 167-179 ms, the forward pass unchanged
+# (80-88 ms); float64 within the spread (gradient 370-394 -> 359-373 ms); at 1000 x 2 the gradient
+# 1.0-1.1 -> 0.8 ms. Not for longer axes: flattened, an operand broadcast along an axis is read
+# through a computed index, and the closed form's 3-column jacfwd at 1000 bodies x 10 times went
+# 3.4 -> 4.2 ms (x 101: 20 -> 31 ms).
 _FLAT_BELOW = 4
 
 

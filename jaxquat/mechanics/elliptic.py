@@ -114,8 +114,9 @@ def _shared_axes_first(shape: tuple[int, ...], shared: tuple[int, ...]) -> tuple
     session 83), times last -> first: 1000 x 4 52 -> 31 ns, 1000 x 10 81 -> 28, 1000 x 20 49 -> 26,
     1000 x 101 35 -> 26, 10^4 x 10 79 -> 27, 10^5 x 10 81 -> 27; at 2 and 3 times it was as fast
     or faster times last (10^5 x 2: 26 against 29-32 ns, 10^5 x 3: 21 against 59 ns), and at 1000 x
-    256 too (24 against 27 ns). The closed form's forward pass at 1000 x 10: 2.2 -> 1.7 ms, at 1000 x
-    101 11.7 -> 11.0 ms. The two transposes are copies of ``u``'s size, once."""
+    256 too (24 against 27 ns). The closed form's forward pass at 1000 x 10: 2.2-2.3 -> 1.7 ms
+    (float64 4.8-5.0 -> 4.1 ms), at 1000 x 101 12.0-12.1 -> 11.1-11.2 ms (float64 within the
+    spread). The two transposes are copies of ``u``'s size, once."""
     own = [i for i, n in enumerate(shared) if n != 1 or shape[i] == 1]
     times = [i for i in range(len(shape)) if i not in own]
     extent = math.prod(shape[i] for i in times)
