@@ -113,8 +113,10 @@ def _shared_axes_first(shape: tuple[int, ...], shared: tuple[int, ...]) -> tuple
     loop per element (20 steps, one core of a 2-core AMD EPYC with AVX-512, float32, least of 10,
     session 83), times last -> first: 1000 x 4 52 -> 31 ns, 1000 x 10 81 -> 28, 1000 x 20 49 -> 26,
     1000 x 101 35 -> 26, 10^4 x 10 79 -> 27, 10^5 x 10 81 -> 27; at 2 and 3 times it was as fast
-    or faster times last (10^5 x 2: 26 against 29-32 ns, 10^5 x 3: 21 against 59 ns), and at 1000 x
-    256 too (24 against 27 ns). The closed form's forward pass at 1000 x 10: 2.2-2.3 -> 1.7 ms
+    or faster times last (10^5 x 2: 26 against 29-32 ns, 10^5 x 3: 21 against 59 ns). At 1000 x 256
+    (a whole number of vectors) the times last were faster too, 24 against 27 ns, and this order
+    still puts them first there: a rule by the vector width is left unmeasured. The closed form's
+    forward pass at 1000 x 10: 2.2-2.3 -> 1.7 ms
     (float64 4.8-5.0 -> 4.1 ms), at 1000 x 101 12.0-12.1 -> 11.1-11.2 ms (float64 within the
     spread). The two transposes are copies of ``u``'s size, once."""
     own = [i for i, n in enumerate(shared) if n != 1 or shape[i] == 1]
