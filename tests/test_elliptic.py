@@ -171,10 +171,12 @@ def test_amplitude_of_per_body_agm_is_that_of_the_agm_at_every_time(times):
 
 def test_shared_axes_first_orders_the_longer_axes_last():
     """The loop order of ``amplitude``: shared axes (size 1 in the AGM) first where they are at
-    least 4 long and shorter than the rest; otherwise the order as given."""
+    least 4 long, not a multiple of 16 and shorter than the rest; otherwise the order as given."""
     order = el._shared_axes_first
     assert order((1000, 101), (1000, 1)) == (1, 0)
     assert order((1000, 3), (1000, 1)) is None  # under 4 times
+    assert order((1000, 256), (1000, 1)) is None  # whole vectors of 16 lanes
+    assert order((1000, 250), (1000, 1)) == (1, 0)
     assert order((10, 101), (10, 1)) is None  # more times than bodies
     assert order((70, 5, 6), (70, 1, 1)) == (1, 2, 0)
     assert order((7, 5, 6), (7, 1, 1)) is None  # 30 times, 7 bodies

@@ -106,23 +106,24 @@ def amplitude(u: Array, steps: tuple[Array, Array, Array], a_last: Array) -> Arr
 def _shared_axes_first(shape: tuple[int, ...], shared: tuple[int, ...]) -> tuple[int, ...] | None:
     """:func:`amplitude`'s loop axes: those of ``u`` (``shape``) along which the AGM (``shared``,
     rank-aligned) is shared first, the parameters' own axes last; ``None`` (the order as it is)
-    where the shared extent is under 4 or not shorter than the rest.
+    where the shared extent is under 4, a multiple of 16 (whole vectors) or not shorter than the
+    rest.
 
     Why: XLA's CPU loop emitter vectorises along the last axis; a body's AGM shared by its saved
     times (``simulate``'s closed form, ``B`` bodies x ``T`` times) put the times last. The Landen
     loop per element (20 steps, one core of a 2-core AMD EPYC with AVX-512, float32, least of 10,
     session 83), times last -> first: 1000 x 4 52 -> 31 ns, 1000 x 10 81 -> 28, 1000 x 20 49 -> 26,
     1000 x 101 35 -> 26, 10^4 x 10 79 -> 27, 10^5 x 10 81 -> 27; at 2 and 3 times it was as fast
-    or faster times last (10^5 x 2: 26 against 29-32 ns, 10^5 x 3: 21 against 59 ns). At 1000 x 256
-    (a whole number of vectors) the times last were faster too, 24 against 27 ns, and this order
-    still puts them first there: a rule by the vector width is left unmeasured. The closed form's
-    forward pass at 1000 x 10: 2.2-2.3 -> 1.7 ms
+    or faster times last (10^5 x 2: 26 against 29-32 ns, 10^5 x 3: 21 against 59 ns), and so it
+    was at a multiple of 16 times, whole vectors of up to 16 lanes (1000 x 16, 32, 64, 128, 256 and
+    10^4 x 16, 48: 24.1-25.3 against 24.9-26.4 ns). The closed form's forward pass at 1000 x 10:
+    2.2-2.3 -> 1.7 ms
     (float64 4.8-5.0 -> 4.1 ms), at 1000 x 101 12.0-12.1 -> 11.1-11.2 ms (float64 within the
     spread). The two transposes are copies of ``u``'s size, once."""
     own = [i for i, n in enumerate(shared) if n != 1 or shape[i] == 1]
     times = [i for i in range(len(shape)) if i not in own]
     extent = math.prod(shape[i] for i in times)
-    if not times or extent < 4 or math.prod(shape[i] for i in own) <= extent:
+    if not times or extent < 4 or extent % 16 == 0 or math.prod(shape[i] for i in own) <= extent:
         return None
     return (*times, *own)
 
