@@ -144,10 +144,10 @@ def _merged(*xs: Array) -> list[Array]:
     out = list(xs)
     shape = xs[0].shape
     flat = len(shape) > 1 and shape[-1] < _FLAT_BELOW
+    nd = 1 if flat else len(shape)
     for kind, pad, combine in _PADS:
         idx = [i for i, x in enumerate(xs) if jnp.issubdtype(x.dtype, kind)]
         parts = [xs[i].reshape(-1) if flat else xs[i] for i in idx]
-        nd = 1 if flat else len(shape)
         pads = [lax.pad(x[..., None], jnp.array(pad, x.dtype), [(0, 0, 0)] * nd + [(0, 1, 0)]) for x in parts]
         for i, y in zip(idx, _reduce_by_dtype(pads, nd, pad, combine)):
             out[i] = y.reshape(shape)

@@ -117,9 +117,8 @@ def _shared_axes_first(shape: tuple[int, ...], shared: tuple[int, ...]) -> tuple
     or faster times last (10^5 x 2: 26 against 29-32 ns, 10^5 x 3: 21 against 59 ns), and so it
     was at a multiple of 16 times, whole vectors of up to 16 lanes (1000 x 16, 32, 64, 128, 256 and
     10^4 x 16, 48: 24.1-25.3 against 24.9-26.4 ns). The closed form's forward pass at 1000 x 10:
-    2.2-2.3 -> 1.7 ms
-    (float64 4.8-5.0 -> 4.1 ms), at 1000 x 101 12.0-12.1 -> 11.1-11.2 ms (float64 within the
-    spread). The two transposes are copies of ``u``'s size, once."""
+    2.2-2.3 -> 1.7 ms (float64 4.8-5.0 -> 4.1 ms), at 1000 x 101 12.0-12.1 -> 11.1-11.2 ms
+    (float64 within the spread). The two transposes are copies of ``u``'s size, once."""
     own = [i for i, n in enumerate(shared) if n != 1 or shape[i] == 1]
     times = [i for i in range(len(shape)) if i not in own]
     extent = math.prod(shape[i] for i in times)
