@@ -2,7 +2,8 @@
 
 Torque-free asymmetric bodies (principal moments (1, 2, 3), random attitudes, rates
 ~ N(0, 1)), float32, dt = 0.01, 1000 steps, batches of 1, 10^3 and 10^5. Contenders,
-all jitted and timed after compilation with block_until_ready (median of repeats):
+all jitted and timed after compilation with block_until_ready (median of repeats; the autodiff
+table: the least of interleaved rounds, ``_autodiff_times``):
 
 - jaxquat.simulate with RKMK4 (the Lie-group solver, through diffrax);
 - jaxquat.RKMK4 as a user's diffrax solver: diffrax.diffeqsolve on ODETerm(jaxquat.RigidBody);
@@ -305,10 +306,33 @@ def _autodiff_cases(run, q0, w0, target):
     )
 
 
-def _autodiff_times(run, q0, w0, target, repeats, warm):
-    """Seconds of ``run``'s forward pass, ``grad``, one-tangent ``jvp`` and 3-column ``jacfwd``."""
-    cases = _autodiff_cases(run, q0, w0, target)
-    return [median_time(jax.jit(fn), *a, repeats=repeats, warmup=warm) for fn, a in cases]
+def _autodiff_times(run, q0, w0, target, repeats, warm, budget=20.0):
+    """Seconds of ``run``'s forward pass, ``grad``, one-tangent ``jvp`` and 3-column ``jacfwd``:
+    each compiled and called ``warm`` times, then timed in rounds, one call of each case per round,
+    and the least of each case's samples kept. Rounds stop after ``repeats``, or once ``budget``
+    seconds have been spent timing and at least two rounds are done.
+
+    Why rounds and the least: on a 2-core VM a program's calls ran about 2x slower for seconds at a
+    time (10^5 float32 bodies x 1000 RKMK4 steps, the forward pass 370-400 ms in most calls and
+    780-990 ms in runs of two or three), the same compiled program in one process, with no steal
+    time in ``/proc/stat``; pinned to one core the calls did not vary so. Until session 84 each case took the median of
+    its own samples, about 3 s of them (two at 10^5 bodies for the gradient), and a slow spell that
+    fell on one case's samples set its figure: session 83's table read the scan path's 10^5-body
+    float32 ``jvp`` at 1679 ms (4.73x) where the same program took 720-760 ms in processes of its
+    own, and a rerun of the table alone read it at 1586 ms."""
+    cases = [(jax.jit(fn), a) for fn, a in _autodiff_cases(run, q0, w0, target)]
+    for fn, a in cases:
+        for _ in range(warm):
+            jax.block_until_ready(fn(*a))
+    times = [[] for _ in cases]
+    spent = 0.0
+    while len(times[0]) < repeats and (len(times[0]) < 2 or spent < budget):
+        for (fn, a), ts in zip(cases, times):
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(*a))
+            ts.append(time.perf_counter() - t0)
+            spent += ts[-1]
+    return [min(ts) for ts in times]
 
 
 def compile_times():
@@ -399,7 +423,8 @@ def markdown(rows, grad_rows, compiled, imported, closed_form, thread_rows=()):
     lines += [
         "",
         "Autodiff cost against the forward pass (final-attitude loss; forward mode: one `jax.jvp` "
-        "tangent on `w0`, `jax.jacfwd` with 3 columns, a rate offset shared by the batch):",
+        "tangent on `w0`, `jax.jacfwd` with 3 columns, a rate offset shared by the batch; each the least of "
+        "up to 5 rounds that call the four programs in turn):",
         "",
         "| dtype | batch | contender | forward | reverse (`grad`) | `jvp` | `jacfwd`, 3 columns |",
         "|---|---:|---|---:|---:|---:|---:|",
