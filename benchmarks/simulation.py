@@ -2,8 +2,8 @@
 
 Torque-free asymmetric bodies (principal moments (1, 2, 3), random attitudes, rates
 ~ N(0, 1)), float32, dt = 0.01, 1000 steps, batches of 1, 10^3 and 10^5. Contenders,
-all jitted and timed after compilation with block_until_ready (median of repeats; the autodiff
-table: the least of interleaved rounds, ``_autodiff_times``):
+all jitted and timed after compilation with block_until_ready (the least of up to ``--repeats``
+calls within 3 s; the autodiff table: the least of interleaved rounds, ``_autodiff_times``):
 
 - jaxquat.simulate with RKMK4 (the Lie-group solver, through diffrax);
 - jaxquat.RKMK4 as a user's diffrax solver: diffrax.diffeqsolve on ODETerm(jaxquat.RigidBody);
@@ -48,7 +48,7 @@ import optax  # noqa: E402
 
 import jaxquat as jq  # noqa: E402
 from jaxquat._threads import ONE_THREAD  # noqa: E402  # the option, also where cpu_compiler_options skips it
-from _report import machine, median_time, write_section  # noqa: E402
+from _report import least_time, machine, write_section  # noqa: E402
 
 DT, STEPS = 0.01, 1000
 MOMENTS = np.array([1.0, 2.0, 3.0])
@@ -215,7 +215,7 @@ def throughput(batches, repeats):
                 rows.append((n, name, None, None, None, None))
                 continue
             f = jax.jit(fn)
-            wall = median_time(f, *args, repeats=repeats if n < 100_000 else 1)
+            wall = least_time(f, *args, repeats=repeats)
             err, med, drift = accuracy(f(*args), q0, w0)
             rows.append((n, name, n * STEPS / wall, err, med, drift))
             print(
