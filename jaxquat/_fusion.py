@@ -139,33 +139,42 @@ def _merged(*xs: Array) -> list[Array]:
     """A variadic ``reduce`` over a new last axis of ``(x, pad)``, one per dtype (XLA refuses a
     ``reduce`` of mixed types): the pad ``-0.0`` for floating arrays, ``0`` for integers and
     ``False`` for booleans (combined by ``or``), each of which leaves ``x`` unchanged. Arrays whose
-    last axis is shorter than ``_FLAT_BELOW`` are flattened first (a bitcast), so the loop is
-    vectorised along all their elements (the constant has why)."""
+    last axis is shorter than ``_SHORT_BELOW`` pass with their last two axes swapped (a transpose
+    that XLA fuses into the loop's reads and writes), so the loop is vectorised along the longer
+    axis (the constant has why)."""
     out = list(xs)
     shape = xs[0].shape
-    flat = len(shape) > 1 and shape[-1] < _FLAT_BELOW
-    nd = 1 if flat else len(shape)
+    swap = len(shape) > 1 and shape[-1] < _SHORT_BELOW
     for kind, pad, combine in _PADS:
         idx = [i for i, x in enumerate(xs) if jnp.issubdtype(x.dtype, kind)]
-        parts = [xs[i].reshape(-1) if flat else xs[i] for i in idx]
-        pads = [lax.pad(x[..., None], jnp.array(pad, x.dtype), [(0, 0, 0)] * nd + [(0, 1, 0)]) for x in parts]
-        for i, y in zip(idx, _reduce_by_dtype(pads, nd, pad, combine)):
-            out[i] = y.reshape(shape)
+        parts = [jnp.swapaxes(xs[i], -1, -2) if swap else xs[i] for i in idx]
+        pads = [lax.pad(x[..., None], jnp.array(pad, x.dtype), [(0, 0, 0)] * x.ndim + [(0, 1, 0)]) for x in parts]
+        for i, y in zip(idx, _reduce_by_dtype(pads, len(shape), pad, combine)):
+            out[i] = jnp.swapaxes(y, -1, -2) if swap else y
     return out
 
 
-# Arrays whose last axis is shorter than this pass through one_loop's reduce flattened. XLA's CPU
-# loop emitter vectorises a reduce's output along its last axis only: on a (10^5, 2) array (10^5
-# bodies at 2 saved times) the loop ran a vector lane or two wide. Measured (session 83, one core of
-# a 2-core AMD EPYC with AVX-512, float32, least of 10): elliptic.rd's 16-step loop over (10^5, 2)
-# 15.2 -> 2.9 ms (2.8 ms over (2 x 10^5,)); carlson's 90 -> 13 ms. simulate's closed form at 10^5
-# bodies x 2 times, with elliptic.rd flattened as well (least of 5, four processes alternated):
-# one jvp 126-140 -> 115-119 ms, the gradient 182-191 -> 167-179 ms, the forward pass unchanged
-# (80-88 ms); float64 within the spread (gradient 370-394 -> 359-373 ms); at 1000 x 2 the gradient
-# 1.0-1.1 -> 0.8 ms. Not for longer axes: flattened, an operand broadcast along an axis is read
-# through a computed index, and the closed form's 3-column jacfwd at 1000 bodies x 10 times went
-# 3.4 -> 4.2 ms (x 101: 20 -> 31 ms).
-_FLAT_BELOW = 4
+# Arrays whose last axis is shorter than this pass through one_loop's reduce with their last two
+# axes swapped. XLA's CPU loop emitter vectorises a reduce's output along its last axis only: on a
+# (10^5, 2) array (10^5 bodies at 2 saved times) the loop ran a vector lane or two wide. Session 83
+# flattened such arrays instead (elliptic.rd's 16-step loop over (10^5, 2) 15.2 -> 2.9 ms, one core
+# of a 2-core AMD EPYC with AVX-512, float32; carlson's 90 -> 13 ms; simulate's closed form at 10^5
+# bodies x 2 times, one jvp 126-140 -> 115-119 ms and the gradient 182-191 -> 167-179 ms). But a
+# flattened loop reads an operand broadcast along the times (a per-body quantity) at index i // 2,
+# and under jacfwd one broadcast along the columns at i % (2 x 10^5): LLVM vectorised none of the
+# closed form's 3-column kernels that read one. Swapped, such an operand is read along the loop (per
+# body) or held for it (per time or per column). Session 84, the same machine, simulate's closed
+# form (benchmarks/simulation.py's loss, float32, one core, least of 7 or 20, two processes each at
+# 10^5 and 1000 bodies, one at 2 x 10^4), flattened -> swapped, forward / grad / jvp / 3-column
+# jacfwd: 10^5 bodies x 2 times 55.0-59.5 / 108-114 / 84-87 / 133-134 -> 48.7-51.5 / 103-108 / 71-73
+# / 97-101 ms; 2 x 10^4 x 2 10.6 / 19.2 / 15.3 / 24.7 -> 9.3 / 18.3 / 13.4 / 17.0 ms, x 3 times 11.0
+# / 23.5 / 16.2 / 27.5 -> 10.2 / 21.3 / 14.4 / 20.5 ms; 1000 x 2 0.55 / 0.74-0.78 / 0.77-0.79 /
+# 1.13-1.18 -> 0.47-0.49 / 0.68-0.73 / 0.62-0.66 / 0.78-0.82 ms; float64 at 10^5 x 2 135-139 /
+# 231-234 / - / 265-269 -> 128-134 / 229-231 / - / 241-249 ms. The programs have 0-3 more fusions
+# (the transposes fuse into the loops); compiling at 1000 x 2 took 1.22-1.35 -> 1.34-1.39 s forward,
+# 3.07-3.50 -> 3.08-3.54 s for the jacfwd. Arrays whose last axis is 4 or more are reduced in their
+# own shape, as before.
+_SHORT_BELOW = 4
 
 
 def _identity(*xs: Array) -> list[Array]:

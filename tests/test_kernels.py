@@ -185,18 +185,18 @@ def test_one_loop_lowers_to_a_variadic_reduce_on_cpu_only():
 
 
 @pytest.mark.parametrize("shape", [(5, 1), (5, 2), (3, 4, 3), (5, 4), (2, 7)])
-def test_one_loop_flattens_a_short_last_axis(shape):
-    """Arrays whose last axis is shorter than 4 reach ``one_loop``'s ``reduce`` flattened (XLA's CPU
-    loop emitter vectorises along the last axis), the others in their own shape; either way the
-    values, their tangents and their cotangents pass unchanged to the bit."""
+def test_one_loop_swaps_a_short_last_axis(shape):
+    """Arrays whose last axis is shorter than 4 reach ``one_loop``'s ``reduce`` with their last two
+    axes swapped (XLA's CPU loop emitter vectorises along the last axis), the others in their own
+    shape; either way the values, their tangents and their cotangents pass unchanged to the bit."""
     x = jnp.asarray(np.random.default_rng(0).normal(size=shape), DTYPE)
 
     def pair(fn):
         return lambda x: tuple(fn((jnp.sin(x) * x, x * x - 1.0)))
 
     text = jax.export.export(jax.jit(pair(_fusion.one_loop_both_ways)), platforms=["cpu"])(x).mlir_module()
-    flat = shape[-1] < 4 and len(shape) > 1
-    padded = [math.prod(shape), 2] if flat else [*shape, 2]
+    swapped = shape[-1] < 4 and len(shape) > 1
+    padded = [*shape[:-2], shape[-1], shape[-2], 2] if swapped else [*shape, 2]
     assert "tensor<" + "x".join(map(str, padded)) + "x" in text, text[-2000:]
     plain, looped = jax.jit(pair(tuple)), jax.jit(pair(_fusion.one_loop_both_ways))
     for a, b in zip(plain(x), looped(x)):
