@@ -280,15 +280,25 @@ def thread_table(repeats):
 
 def _interleaved(fns, args, repeats):
     """Median seconds of each of ``fns(*args)``, their calls alternated after one call each."""
-    times = [[] for _ in fns]
-    for f in fns:
-        jax.block_until_ready(f(*args))
-    for _ in range(repeats):
-        for f, ts in zip(fns, times):
+    return _rounds([(f, args) for f in fns], repeats, warm=1, statistic=lambda ts: float(np.median(ts)))
+
+
+def _rounds(cases, repeats, warm, budget=float("inf"), statistic=min):
+    """``statistic`` of each case's seconds: each ``(fn, args)`` of ``cases`` called ``warm`` times,
+    then timed in rounds, one call of each case per round. Rounds stop after ``repeats``, or once
+    ``budget`` seconds have been spent timing and at least two rounds are done."""
+    for fn, a in cases:
+        for _ in range(warm):
+            jax.block_until_ready(fn(*a))
+    times = [[] for _ in cases]
+    spent = 0.0
+    while len(times[0]) < repeats and (len(times[0]) < 2 or spent < budget):
+        for (fn, a), ts in zip(cases, times):
             t0 = time.perf_counter()
-            jax.block_until_ready(f(*args))
+            jax.block_until_ready(fn(*a))
             ts.append(time.perf_counter() - t0)
-    return [float(np.median(ts)) for ts in times]
+            spent += ts[-1]
+    return [statistic(ts) for ts in times]
 
 
 def _autodiff_cases(run, q0, w0, target):
@@ -320,19 +330,7 @@ def _autodiff_times(run, q0, w0, target, repeats, warm, budget=20.0):
     fell on one case's samples set its figure: session 83's table read the scan path's 10^5-body
     float32 ``jvp`` at 1679 ms (4.73x) where the same program took 720-760 ms in processes of its
     own, and a rerun of the table alone read it at 1586 ms."""
-    cases = [(jax.jit(fn), a) for fn, a in _autodiff_cases(run, q0, w0, target)]
-    for fn, a in cases:
-        for _ in range(warm):
-            jax.block_until_ready(fn(*a))
-    times = [[] for _ in cases]
-    spent = 0.0
-    while len(times[0]) < repeats and (len(times[0]) < 2 or spent < budget):
-        for (fn, a), ts in zip(cases, times):
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn(*a))
-            ts.append(time.perf_counter() - t0)
-            spent += ts[-1]
-    return [min(ts) for ts in times]
+    return _rounds([(jax.jit(fn), a) for fn, a in _autodiff_cases(run, q0, w0, target)], repeats, warm, budget)
 
 
 def compile_times():
