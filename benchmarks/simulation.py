@@ -20,7 +20,8 @@ solution (jaxquat.euler_poinsot in float64) and the largest | |q| - 1 |.
 Also: the cost of autodiff against the forward pass (reverse mode: jax.grad of a
 final-attitude loss; forward mode: one jvp tangent, and jacfwd with 3 columns), float32 and
 float64, at batches 10^3 and 10^5, for simulate (RKMK4, and the default closed form) and the
-hand RK4 (checkpointed as simulate's scan path is), compile time (time to the first result
+hand RK4 (checkpointed as simulate's scan path is), and at 10^3 for the minimum-time solver's
+held-torque rollout (80 intervals x 4 RKMK4 steps, vmapped over the bodies), compile time (time to the first result
 of simulate, and of one optax step through it), and import time (import jaxquat, its first
 rotation function, its first simulate). And XLA's split of each CPU kernel between threads at
 small batches: the scan path and the hand RK4 compiled with XLA's defaults and with the split
@@ -48,6 +49,7 @@ import optax  # noqa: E402
 
 import jaxquat as jq  # noqa: E402
 from jaxquat._threads import ONE_THREAD  # noqa: E402  # the option, also where cpu_compiler_options skips it
+from jaxquat.control.transcription import held_torque_states  # noqa: E402  # the solver's rollout, private
 from _report import least_time, machine, write_section  # noqa: E402
 
 DT, STEPS = 0.01, 1000
@@ -161,6 +163,25 @@ def jaxquat_closed_form(q0, w0):
     return jq.simulate(q0, w0, np.diag(np.asarray(MOMENTS, q0.dtype)), ts).q[..., -1, :]
 
 
+ROLLOUT_INTERVALS, ROLLOUT_SUBSTEPS = 80, 4
+
+
+def held_torque_rollout(q0, w0):
+    """The final attitude of ``minimum_time_reorientation``'s held-torque rollout (RKMK4 in rows
+    through a torque held on 80 intervals, 4 steps each, over the same 10 time units), each body
+    on its own under ``jax.vmap``, as the single-shooting solver integrates one problem: issue 17's
+    third place for the gradient's 3x (session 30's table in docs/benchmarks.md)."""
+    k = jnp.arange(ROLLOUT_INTERVALS, dtype=q0.dtype)
+    u = 0.05 * jnp.stack([jnp.sin(0.1 * k), jnp.cos(0.07 * k), jnp.sin(0.05 * k + 1.0)], axis=-1)
+    inertia = jnp.diag(jnp.asarray(MOMENTS, q0.dtype))
+    T = jnp.asarray(STEPS * DT, q0.dtype)
+
+    def one(q, w):
+        return held_torque_states(inertia, q, w, T, u, ROLLOUT_SUBSTEPS)[0][-1]
+
+    return jax.vmap(one)(q0, w0)
+
+
 def mjx_contender():
     """MJX free body with the same moments (None if mujoco-mjx is not installed)."""
     try:
@@ -230,8 +251,8 @@ def gradient_table(batches, repeats):
     """Forward pass, reverse mode (``jax.grad`` of a final-attitude loss), forward mode (one
     ``jax.jvp`` tangent on ``w0``, and ``jax.jacfwd`` with 3 columns: a rate offset shared by
     the batch) for jaxquat's RKMK4 (torque-free, and with a PD torque law), the default closed
-    form and the hand RK4 (torque-free), float32 and float64: ``(dtype, batch, contender, forward, reverse, jvp,
-    jacfwd)`` in seconds."""
+    form and the hand RK4 (torque-free), and up to 10^4 bodies the minimum-time solver's held-torque
+    rollout, float32 and float64: ``(dtype, batch, contender, forward, reverse, jvp, jacfwd)`` in seconds."""
     rows = []
     for dtype in (F32, jnp.float64):
         for n in batches:
@@ -244,6 +265,7 @@ def gradient_table(batches, repeats):
                 ("jaxquat simulate, RKMK4, PD torque", jaxquat_rkmk4_pd),
                 ("jaxquat simulate, closed form (default)", jaxquat_closed_form),
                 ("hand-written RK4, checkpointed", hand_rk4_checkpointed),
+                *(() if n > 10_000 else (("minimum-time held-torque rollout, 80 x 4 steps", held_torque_rollout),)),
             ):
                 fwd, rev, jvp, jac = _autodiff_times(run, q0, w0, target, repeats, warm)
                 rows.append((jnp.dtype(dtype).name, n, name, fwd, rev, jvp, jac))
