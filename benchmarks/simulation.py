@@ -34,6 +34,7 @@ off (``jq.cpu_compiler_options``' option), their calls interleaved.
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 import time
@@ -414,9 +415,16 @@ def import_times(repeats=5):
 
 
 def _fresh_runs(code: str, repeats: int) -> np.ndarray:
-    """The numbers ``code`` prints, one row per fresh interpreter (``repeats`` of them)."""
+    """The numbers ``code`` prints, one row per fresh interpreter (``repeats`` of them).
+
+    The interpreters may write and read Python's bytecode cache whatever the caller's environment
+    says, as under ``make`` (whose ``unexport PYTHONDONTWRITEBYTECODE`` the Makefile explains): run
+    directly with ``PYTHONDONTWRITEBYTECODE=1``, as this machine exports it, each fresh process
+    compiled jax and jaxquat from source, and session 86's run read ``import jax`` 1.90 s against
+    0.72 s the day before (and 1.27-1.32 s in that hour with the cache)."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
     runs = [
-        subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+        subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env).stdout.split()
         for _ in range(repeats)
     ]
     return np.asarray(runs, float)
