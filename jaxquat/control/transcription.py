@@ -211,7 +211,20 @@ def _held(solver, field, y0, time, u, substeps: int, fractions):
     -> 10.7-11.8 s and 0.61-0.62 -> 0.56-0.62 s; three reaction wheels, 20 intervals, 4 starts
     10.2 -> 9.0 s and 0.19 -> 0.18 s. ``method="single_shooting"`` (its Lagrangian's gradient runs
     through this rollout in reverse mode), Bilimoria-Wie at 30 intervals: the time within an ulp,
-    59.0 -> 59.6 s and 38.6 -> 39.1 s, one run each."""
+    59.0 -> 59.6 s and 38.6 -> 39.1 s, one run each.
+
+    In float32 the rematerialised steps keep the results of their 3x3 products
+    (``jax.checkpoint_policies.dots_with_no_batch_dims_saveable``, session 87). XLA on CPU runs
+    these products (8 in the compiled forward pass) as YNNPACK fusions, which cost the float32
+    forward pass 113 ms against 86 ms in float64, and each rematerialised step paid them again.
+    The same rollout, one pinned core of this 2-core EPYC, two processes each
+    alternated, all -> float32 products kept: the gradient in ``u`` 349-350 -> 301-306 ms (3.09x ->
+    2.66-2.71x a forward pass of 113 ms), in ``w0`` 346-347 -> 301-304 ms (3.06-3.07x ->
+    2.67-2.68x), the gradients the same to the printed nine digits. In float64 the policy measured
+    289-295 against 289-292 ms this session and 243-248 against 218-222 ms in session 85, so it
+    stays off there. Written as element-wise sums (``_arrays.matvec``), the products took the
+    float32 forward pass 113 -> 88 ms but its gradient only to 280-294 ms, 3.2-3.3x, and float64's
+    to 305-324 ms."""
     ts = _grid(u.shape[0], substeps, fractions, y0[1].dtype) * time
     return solve_fixed_steps(
         solver,
@@ -220,7 +233,12 @@ def _held(solver, field, y0, time, u, substeps: int, fractions):
         y0,
         substeps=1,
         interval_args=jnp.repeat(u, substeps, axis=0),
+        checkpoint=_ROLLOUT_CHECKPOINT.get(jnp.dtype(y0[1].dtype), True),
     )
+
+
+# Which residuals the rollout's rematerialised steps keep, by dtype (_held).
+_ROLLOUT_CHECKPOINT = {jnp.dtype(jnp.float32): jax.checkpoint_policies.dots_with_no_batch_dims_saveable}
 
 
 def _states(cfg: Config, data: Data, x0, time, u, substeps: int, fractions=None):

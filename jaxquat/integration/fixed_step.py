@@ -45,7 +45,7 @@ def solve_fixed_steps(
     *,
     substeps: int = 1,
     interval_args: Any = None,
-    checkpoint: bool = True,
+    checkpoint: bool | Callable = True,
 ) -> Any:
     """The state at every ``ts``, each interval ``[ts[i], ts[i+1]]`` split into ``substeps``
     equal steps of ``solver``; returns ``y`` with a leading axis ``len(ts)`` (``ys[0] = y0``).
@@ -54,7 +54,8 @@ def solve_fixed_steps(
     ``i`` sees ``args = interval_args[i]`` (a piecewise-constant control), and its first step is
     flagged ``made_jump`` so first-same-as-last solvers re-evaluate the vector field there.
     ``checkpoint``: rematerialise each step in the backward pass (``jax.checkpoint``), so
-    reverse mode stores one state per step. ``ts`` may be traced (only its values are used);
+    reverse mode stores one state per step; a policy of ``jax.checkpoint_policies`` instead of
+    ``True`` keeps the residuals it names as well. ``ts`` may be traced (only its values are used);
     ``substeps`` must be a Python int.
 
     Args:
@@ -66,7 +67,10 @@ def solve_fixed_steps(
         args: passed to the vector field (unless ``interval_args`` is given).
         substeps: equal solver steps per interval of ``ts``.
         interval_args: per-interval ``args``, leaves with a leading axis ``n - 1``.
-        checkpoint: rematerialise each step in reverse mode (memory: one state per step).
+        checkpoint: rematerialise each step in reverse mode (memory: one state per step);
+            ``False`` stores every step's residuals; a ``jax.checkpoint_policies`` policy
+            (e.g. ``jax.checkpoint_policies.dots_with_no_batch_dims_saveable``) stores those it
+            saves.
 
     Returns:
         ``y0``'s pytree with a leading axis ``n`` on every leaf: the state at each of ``ts``.
@@ -105,16 +109,24 @@ def scan_steps(
     *,
     substeps: int,
     interval_args: Any = None,
-    checkpoint: bool = True,
+    checkpoint: bool | Callable = True,
     saved: Callable = lambda y: y,
 ) -> Any:
     """The ``lax.scan`` behind :func:`solve_fixed_steps`, for any step function
     ``step(y, t0, t1, args, jump) -> y`` on a pytree state: ``substeps`` equal steps per interval
     of ``ts``, the state at every ``ts`` stacked on a leading axis (``ys[0] = y0``). ``jump`` is
     True on each interval's first step when ``interval_args`` is given. ``checkpoint``:
-    rematerialise each step in reverse mode. ``saved(y)``: the part of the state kept at each
+    rematerialise each step in reverse mode (a ``jax.checkpoint_policies`` policy: keeping what
+    it saves). ``saved(y)``: the part of the state kept at each
     of ``ts`` (all of it by default)."""
-    one_step = jax.checkpoint(step) if checkpoint else step
+    if checkpoint is True:
+        one_step = jax.checkpoint(step)
+    elif callable(checkpoint):
+        one_step = jax.checkpoint(step, policy=checkpoint)
+    elif checkpoint is False:
+        one_step = step
+    else:
+        raise TypeError(f"argument 'checkpoint' must be a bool or a jax.checkpoint_policies policy, got {checkpoint!r}")
     state_bytes = sum(jnp.size(x) * jnp.result_type(x).itemsize for x in jax.tree.leaves(y0))
     segment = segment_length(substeps, state_bytes) if checkpoint else 0
 
