@@ -233,12 +233,8 @@ def _held(solver, field, y0, time, u, substeps: int, fractions):
         y0,
         substeps=1,
         interval_args=jnp.repeat(u, substeps, axis=0),
-        checkpoint=_ROLLOUT_CHECKPOINT.get(jnp.dtype(y0[1].dtype), True),
+        checkpoint=jax.checkpoint_policies.dots_with_no_batch_dims_saveable if y0[1].dtype == jnp.float32 else True,
     )
-
-
-# Which residuals the rollout's rematerialised steps keep, by dtype (_held).
-_ROLLOUT_CHECKPOINT = {jnp.dtype(jnp.float32): jax.checkpoint_policies.dots_with_no_batch_dims_saveable}
 
 
 def _states(cfg: Config, data: Data, x0, time, u, substeps: int, fractions=None):
