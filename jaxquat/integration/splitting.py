@@ -42,7 +42,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from .. import _arrays, _quaternion, _rotation, _safe, _trig
+from .. import _arrays, _safe, _trig
 from .lie_solvers import SlerpInterpolation, leaf_flags, unit
 from ..mechanics.rigid_body import RigidBody
 from ..mechanics.torque_free import propagate
@@ -234,26 +234,54 @@ class EulerPoinsotSplit4(AbstractSplitting):
         return propagate(q, w, moments, jnp.broadcast_to(h, q.shape[:-1]).astype(q.dtype))
 
 
-def _axis_rotation(q: Array, m: Array, inv_inertia: Array, axis: int, tau) -> tuple[Array, Array]:
-    """Exact flow of ``H_i = m_i^2 / (2 I_i)`` for time ``tau``: rotate about body axis ``i``."""
-    phi = tau * m[..., axis] * inv_inertia[..., axis]
-    e = jnp.zeros_like(m).at[..., axis].set(phi)
-    q = _quaternion.multiply(q, _rotation.from_rotvec(e))
+# q (0, e_i) as signed components of q (w, x, y, z), for each body axis i: (component, sign) per
+# output component; (w, v)(0, e) = (-v . e, w e + v x e).
+_TIMES_AXIS = (
+    ((1, -1.0), (0, 1.0), (3, 1.0), (2, -1.0)),
+    ((2, -1.0), (3, -1.0), (0, 1.0), (1, 1.0)),
+    ((3, -1.0), (2, 1.0), (1, -1.0), (0, 1.0)),
+)
+
+
+def _axis_rotation(q: list, m: list, inv_inertia: list, axis: int, tau) -> tuple[list, list]:
+    """Exact flow of ``H_i = m_i^2 / (2 I_i)`` for time ``tau``, on components (lists of arrays):
+    ``q <- q Exp(phi e_i)`` with ``phi = tau m_i / I_i`` about body axis ``i``, and the body
+    momentum turned by ``-phi`` about ``e_i`` (``dm/dt = m x (phi' e_i)``).
+
+    One ``sincos`` of ``phi/2`` gives both: ``Exp(phi e_i) = (c, s e_i)``, so ``q Exp(phi e_i) =
+    c q + s q (0, e_i)`` (a signed permutation of ``q``), and ``sin phi = 2 s c``, ``cos phi =
+    c^2 - s^2``."""
+    phi = tau * m[axis] * inv_inertia[axis]
+    s, c = _trig.sincos(0.5 * phi)
+    q = [c * q[i] + (s * sign) * q[k] for i, (k, sign) in enumerate(_TIMES_AXIS[axis])]
     j, k = (axis + 1) % 3, (axis + 2) % 3
-    s, c = _trig.sincos(phi)
-    mj, mk = m[..., j], m[..., k]
-    # dm/dt = m x (phi' e_i): the body momentum turns by -phi about axis i.
-    m = m.at[..., j].set(c * mj + s * mk).at[..., k].set(-s * mj + c * mk)
+    sin, cos = 2.0 * s * c, c * c - s * s
+    m = list(m)
+    m[j], m[k] = cos * m[j] + sin * m[k], cos * m[k] - sin * m[j]
     return q, m
 
 
 def _axis_splitting(q, w, moments, h):
-    """Torque-free flow for ``h``: ``R1(h/2) R2(h/2) R3(h) R2(h/2) R1(h/2)``."""
+    """Torque-free flow for ``h``: ``R1(h/2) R2(h/2) R3(h) R2(h/2) R1(h/2)``, on components
+    (:func:`jaxquat._arrays.components`) from the rows ``q`` ``(..., 4)`` and ``w`` ``(..., 3)``.
+
+    Why components and one half-angle ``sincos`` per rotation: before session 89 each rotation
+    took ``from_rotvec`` of ``(0, .., phi, .., 0)`` (a norm, both of its branches and a Hamilton
+    product with three zero components), a second ``sincos`` of ``phi``, and updated the rows of
+    ``m`` by ``.at[..., j].set``. ``simulate`` with ``RigidBodySplit`` (1000 torque-free bodies x
+    1000 steps, one pinned core of a 2-core AMD EPYC, least of 7, two processes each,
+    alternated), before -> after: the forward pass 297 -> 67 ms in float32 and 337 -> 132 ms in
+    float64, the gradient of a final-attitude loss in ``w0`` 2.72-2.77 -> 0.32-0.33 s and
+    3.20-3.23 -> 0.60 s (9.3x -> 4.8x and 9.5x -> 4.5x the forward pass). The float64 results
+    agree to 1e-13 relative; in float32, after 1000 steps, the sum of the final quaternions is
+    8.5e-4 (before) and 3.5e-4 (after) from float64's."""
     inv = 1 / moments
     m = moments * w
+    inv_c = _arrays.components(jnp.broadcast_to(inv, m.shape))
+    q_c, m_c = _arrays.components(q), _arrays.components(m)
     for axis, frac in ((0, 0.5), (1, 0.5), (2, 1.0), (1, 0.5), (0, 0.5)):
-        q, m = _axis_rotation(q, m, inv, axis, frac * h)
-    return q, m * inv
+        q_c, m_c = _axis_rotation(q_c, m_c, inv_c, axis, frac * h)
+    return _arrays.assemble(*q_c), _arrays.assemble(*m_c) * inv
 
 
 def _invariants(moments: Array, w: Array) -> tuple[Array, Array]:
