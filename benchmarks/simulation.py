@@ -34,6 +34,7 @@ off (``jq.cpu_compiler_options``' option), their calls interleaved.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import subprocess
 import sys
@@ -352,8 +353,17 @@ def _autodiff_times(run, q0, w0, target, repeats, warm, budget=20.0):
     its own samples, about 3 s of them (two at 10^5 bodies for the gradient), and a slow spell that
     fell on one case's samples set its figure: session 83's table read the scan path's 10^5-body
     float32 ``jvp`` at 1679 ms (4.73x) where the same program took 720-760 ms in processes of its
-    own, and a rerun of the table alone read it at 1586 ms."""
-    return _rounds([(jax.jit(fn), a) for fn, a in _autodiff_cases(run, q0, w0, target)], repeats, warm, budget)
+    own, and a rerun of the table alone read it at 1586 ms.
+
+    Each program is compiled with :func:`jaxquat.cpu_compiler_options` for its batch and dtype, as
+    the library's docs tell a user to ``jit`` a loss (one thread for a float32 batch of up to 1024
+    on the CPU, XLA's defaults otherwise). Until session 90 they were compiled with XLA's defaults,
+    whose split of each kernel between two threads slowed the float32 forward pass at 1000 bodies
+    more than its derivatives (2-core Intel Xeon, session 90, defaults -> these options: forward
+    24.0 -> 7.0 ms, gradient 52.5 -> 32.5 ms, so the gradient's ratio 2.19x -> 4.65x)."""
+    options = jq.cpu_compiler_options(math.prod(q0.shape[:-1]), q0.dtype) or None
+    cases = _autodiff_cases(run, q0, w0, target)
+    return _rounds([(jax.jit(fn, compiler_options=options), a) for fn, a in cases], repeats, warm, budget)
 
 
 def compile_times():
@@ -452,7 +462,9 @@ def markdown(rows, grad_rows, compiled, imported, closed_form, thread_rows=()):
         "",
         "Autodiff cost against the forward pass (final-attitude loss; forward mode: one `jax.jvp` "
         "tangent on `w0`, `jax.jacfwd` with 3 columns, a rate offset shared by the batch; each the least of "
-        "up to 5 rounds that call the four programs in turn):",
+        "up to 5 rounds that call the four programs in turn; every program compiled with "
+        "`jq.cpu_compiler_options(batch, dtype)`, which turns XLA's split of kernels between threads off for "
+        "a float32 batch of up to 1024):",
         "",
         "| dtype | batch | contender | forward | reverse (`grad`) | `jvp` | `jacfwd`, 3 columns |",
         "|---|---:|---|---:|---:|---:|---:|",
