@@ -111,10 +111,10 @@ def damping(t, q, w, a):
     return -a["k"] * w * (2.0 if a["mode"] == "double" else 1.0) * a["scale"] * a["n"]
 
 
-# rtol = atol = 1e-5, not simulate's 1e-8 (below float32's resolution, so the controller took its
-# smallest steps): the split and the plain runs take the same steps either way, and the adaptive
-# runs' steps cost this script 51.4 -> 40.8 s (the split gradient, which solves the whole batch on
-# each of the 4 devices in its backward pass, 14.9 -> 9.4 s; one core of a 2-core Xeon, session 90).
+# rtol = atol = 1e-5, not simulate's 1e-8 (below float32's resolution: the controller took many
+# more steps than float32 can use): the split and the plain runs take the same steps either way,
+# and the script took 51.4 -> 40.8 s (the split gradient, which solves the whole batch on each of
+# the 4 devices in its backward pass, 14.9 -> 9.4 s; one core of a 2-core Xeon, session 90).
 damped = {
     "solver": jq.RKMK45(),
     "rtol": 1e-5,
