@@ -42,7 +42,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from .. import _arrays, _safe, _trig
+from .. import _arrays, _quaternion, _safe, _trig
 from .lie_solvers import SlerpInterpolation, leaf_flags, unit
 from ..mechanics.rigid_body import RigidBody
 from ..mechanics.torque_free import propagate
@@ -234,26 +234,20 @@ class EulerPoinsotSplit4(AbstractSplitting):
         return propagate(q, w, moments, jnp.broadcast_to(h, q.shape[:-1]).astype(q.dtype))
 
 
-# q (0, e_i) as signed components of q (w, x, y, z), for each body axis i: (component, sign) per
-# output component; (w, v)(0, e) = (-v . e, w e + v x e).
-_TIMES_AXIS = (
-    ((1, -1.0), (0, 1.0), (3, 1.0), (2, -1.0)),
-    ((2, -1.0), (3, -1.0), (0, 1.0), (1, 1.0)),
-    ((3, -1.0), (2, 1.0), (1, -1.0), (0, 1.0)),
-)
-
-
 def _axis_rotation(q: list, m: list, inv_inertia: list, axis: int, tau) -> tuple[list, list]:
     """Exact flow of ``H_i = m_i^2 / (2 I_i)`` for time ``tau``, on components (lists of arrays):
     ``q <- q Exp(phi e_i)`` with ``phi = tau m_i / I_i`` about body axis ``i``, and the body
     momentum turned by ``-phi`` about ``e_i`` (``dm/dt = m x (phi' e_i)``).
 
-    One ``sincos`` of ``phi/2`` gives both: ``Exp(phi e_i) = (c, s e_i)``, so ``q Exp(phi e_i) =
-    c q + s q (0, e_i)`` (a signed permutation of ``q``), and ``sin phi = 2 s c``, ``cos phi =
+    One ``sincos`` of ``phi/2`` gives both: ``Exp(phi e_i) = (c, s e_i)``, whose product with
+    ``q`` takes two terms per component (its zero components left out by
+    :func:`jaxquat._quaternion.multiply_components`), and ``sin phi = 2 s c``, ``cos phi =
     c^2 - s^2``."""
     phi = tau * m[axis] * inv_inertia[axis]
     s, c = _trig.sincos(0.5 * phi)
-    q = [c * q[i] + (s * sign) * q[k] for i, (k, sign) in enumerate(_TIMES_AXIS[axis])]
+    rotation: list = [c, None, None, None]
+    rotation[1 + axis] = s
+    q = _quaternion.multiply_components(q, rotation)
     j, k = (axis + 1) % 3, (axis + 2) % 3
     sin, cos = 2.0 * s * c, c * c - s * s
     m = list(m)
@@ -274,7 +268,10 @@ def _axis_splitting(q, w, moments, h):
     float64, the gradient of a final-attitude loss in ``w0`` 2.72-2.77 -> 0.32-0.33 s and
     3.20-3.23 -> 0.60 s (9.3x -> 4.8x and 9.5x -> 4.5x the forward pass). The float64 results
     agree to 1e-13 relative; in float32, after 1000 steps, the sum of the final quaternions is
-    8.5e-4 (before) and 3.5e-4 (after) from float64's."""
+    8.5e-4 (before) and 3.5e-4 (after) from float64's. Session 90 wrote the product with
+    ``Exp(phi e_i)`` through ``multiply_components`` instead of a table of signed components of
+    its own: the same terms, one ulp apart where XLA fuses a multiply-add differently, the same
+    times (one pinned core of a 2-core Intel Xeon, least of 7, two processes each)."""
     inv = 1 / moments
     m = moments * w
     inv_c = _arrays.components(jnp.broadcast_to(inv, m.shape))
