@@ -165,30 +165,39 @@ def x64():
     return bool(jax.config.jax_enable_x64)
 
 
-# The files that take longest (seconds of test time on a 2-core EPYC, float64 / float32 pass,
-# sessions 38-39: optimal control about 250 / 0, the integrators 156 / 95, the contract 123 / 115,
-# the time-optimal solvers about 80 / 0, the examples 48 / 0, the torque-free flow 47 / 19, the
-# Lie solvers 43 / 20, the spline 43 / 27, the Euler angles 34 / 22, the notebooks 26 / 0, then
-# the optimisation examples, the UKF, attitude determination and the MEKF, 8-25 s each) are
-# collected first, the rest in file order. pytest-xdist's --dist loadfile hands a worker the next
-# file as it frees up, in this order with --no-loadscope-reorder (Makefile; by default xdist sorts
-# the files by their number of tests), so the long files start first and the short ones fill the
-# end, instead of one worker finishing a long file alone. Order only: no test depends on another.
+# The files that take longest are collected first, the rest in file order. pytest-xdist's --dist
+# loadfile hands a worker the next file as it frees up, in this order with --no-loadscope-reorder
+# (Makefile; by default xdist sorts the files by their number of tests), so the long files start
+# first and the short ones fill the end, instead of one worker finishing a long file alone. The
+# order is by the sum of a file's test time in the two passes (seconds, float64 + float32, a
+# 2-core Intel Xeon, session 91): the integrators 102 + 66, the contract 67 + 60, optimal control
+# 125 + 0, the Lie solvers 64 + 37, the kernels 37 + 32, the sharding subprocess 4 + 43, the
+# time-optimal solvers 40 + 0, then 15-33 s each. Until session 90 the sharding file (43 s of the
+# float32 pass) and the kernels were left in file order, late: replaying the passes' file times
+# on two workers in each order, the float32 pass's longer worker 190 -> 184 s, the float64 pass's
+# 341 -> 342 s; run, the float32 pass took 197 s for 365 s of test time before and 197 s for 383 s after
+# (a slower minute: at equal work, about 9 s less). Order only: no test depends on another.
 _LONGEST_FIRST = (
-    "test_optimal_control.py",
     "test_integrators.py",
-    "test_contract.py",  # the longest in the float32 pass
-    "test_time_optimal.py",
-    "test_examples.py",
-    "test_torque_free.py",
+    "test_contract.py",
+    "test_optimal_control.py",
     "test_lie_solvers.py",
+    "test_kernels.py",
+    "test_sharding.py",
+    "test_time_optimal.py",
     "test_spline.py",
-    "test_euler_angles.py",
+    "test_derivatives.py",
+    "test_examples.py",
+    "test_elliptic.py",
+    "test_torque_free.py",
+    "test_determination.py",
+    "test_threads.py",
     "test_notebooks.py",
     "test_examples_optimisation.py",
+    "test_kinematics.py",
+    "test_euler_angles.py",
     "test_ukf.py",
-    "test_determination.py",
-    "test_mekf.py",
+    "test_dynamics.py",
 )
 
 
