@@ -3,7 +3,10 @@
 import pathlib
 import re
 
+import pytest
+
 import jaxquat as jq
+from helpers import X64
 
 ROOT = pathlib.Path(__file__).parent.parent
 
@@ -114,6 +117,7 @@ def test_the_package_re_exports_every_module_name_by_name():
     assert all(hasattr(jq, name) for name in jq.__all__)
 
 
+@pytest.mark.skipif(not X64, reason="once per make test: which modules load does not depend on the dtype")
 def test_import_jaxquat_imports_a_module_on_first_use_of_its_names():
     """``import jaxquat`` imports none of its modules (``lazy_loader``): the rotations do not
     import diffrax, equinox or optax, nor does ``simulate`` on its default torque-free path (the

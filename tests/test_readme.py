@@ -4,6 +4,8 @@ import pathlib
 import re
 
 import jax
+import pytest
+from helpers import X64
 
 
 def test_quick_tour_runs(capsys):
@@ -30,6 +32,7 @@ def test_dynamics_example_runs_and_its_claims_hold(capsys):
     assert "nan" not in capsys.readouterr().out.lower()
 
 
+@pytest.mark.skipif(not X64, reason="once per make test: its subprocess sets no dtype, the same run in both passes")
 def test_import_changes_no_global_setting():
     import subprocess
     import sys
