@@ -8,6 +8,7 @@ the functions they replace, checked here against independent references (NumPy's
 derivatives, finite differences, the Hamilton product in rows).
 """
 
+import functools
 import math
 import re
 
@@ -110,26 +111,19 @@ def test_one_loop_passes_integers_and_booleans_unchanged_in_a_loop_per_dtype():
 _through_plain = jax.jit(lambda x: _through(None, x))
 
 
-@pytest.mark.parametrize("barrier", sorted(BARRIERS))
-def test_one_loop_barriers_are_the_identity_to_every_transform(barrier):
-    """``grad``, ``jvp``, ``jacfwd``, ``linearize``, the Hessian both ways, a Hessian-vector
-    product, the gradient of a ``jvp``, ``vmap`` (with an unbatched operand) and ``jax.checkpoint``
-    (nothing saved, and everything saved) through a step with the barriers equal the step without
-    them (to a few ulps: the loops' boundaries move where the compiler contracts products into
-    fused multiply-adds, measured up to 1.4e-14 in a float64 Hessian), and ``check_grads`` passes.
-    Under ``jvp`` values and tangents share one bind, which ``linearize`` and remat must split
-    again (the partial-evaluation rules of ``jaxquat._fusion``): the transforms that mix the
-    modes are the ones that would fail without them."""
+@functools.cache
+def _barrier_point():
     x = jnp.asarray(np.random.default_rng(2).uniform(0.1, 1.0, size=(5,)), DTYPE)
-    dx = jnp.asarray(np.random.default_rng(3).normal(size=(5,)), DTYPE)
+    return x, jnp.asarray(np.random.default_rng(3).normal(size=(5,)), DTYPE)
+
+
+def _barrier_transforms(f):
+    """The barrier test's transforms of ``f``, at its point."""
+    x, dx = _barrier_point()
 
     def cost(fn):
         return lambda x: jnp.sum(fn(x)[0] * jnp.arange(5)) + jnp.sum(fn(x)[1] ** 2)
 
-    def step(x):
-        return _through(barrier, x)
-
-    tol = dict(rtol=64 * EPS, atol=64 * EPS)
     transforms = (
         lambda f: jax.grad(cost(f))(x),
         lambda f: jax.jvp(f, (x,), (dx,))[1],
@@ -144,10 +138,35 @@ def test_one_loop_barriers_are_the_identity_to_every_transform(barrier):
         lambda f: jax.grad(jax.checkpoint(cost(f), policy=jax.checkpoint_policies.everything_saveable))(x),
         lambda f: jax.vmap(jax.grad(cost(f)))(jnp.stack([x, 2 * x])),
     )
+    return [t(f) for t in transforms]
+
+
+@functools.cache
+def _barrier_plain():
+    """The transforms without a barrier: one program for the three barriers' tests (each
+    compiled its own, the same one)."""
+    return jax.jit(lambda: _barrier_transforms(_through_plain))()
+
+
+@pytest.mark.parametrize("barrier", sorted(BARRIERS))
+def test_one_loop_barriers_are_the_identity_to_every_transform(barrier):
+    """``grad``, ``jvp``, ``jacfwd``, ``linearize``, the Hessian both ways, a Hessian-vector
+    product, the gradient of a ``jvp``, ``vmap`` (with an unbatched operand) and ``jax.checkpoint``
+    (nothing saved, and everything saved) through a step with the barriers equal the step without
+    them (to a few ulps: the loops' boundaries move where the compiler contracts products into
+    fused multiply-adds, measured up to 1.4e-14 in a float64 Hessian), and ``check_grads`` passes.
+    Under ``jvp`` values and tangents share one bind, which ``linearize`` and remat must split
+    again (the partial-evaluation rules of ``jaxquat._fusion``): the transforms that mix the
+    modes are the ones that would fail without them."""
+    x, dx = _barrier_point()
+
+    def step(x):
+        return _through(barrier, x)
+
     # every transform in one program per form (a program per transform: 24 compilations)
-    got, want = (jax.jit(lambda f=f: [t(f) for t in transforms])() for f in (step, _through_plain))
-    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
-        np.testing.assert_allclose(a, b, **tol)
+    got = jax.jit(lambda: _barrier_transforms(step))()
+    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(_barrier_plain()), strict=True):
+        np.testing.assert_allclose(a, b, rtol=64 * EPS, atol=64 * EPS)
     pair = jax.vmap(BARRIERS[barrier], in_axes=((0, None),))((jnp.stack([x, dx]), x))
     np.testing.assert_array_equal(pair[1], jnp.stack([x, x]))
     check_grads(jax.jit(lambda x: step(x)[0]), (x,), order=2, modes=["fwd", "rev"])
@@ -807,6 +826,34 @@ _MOSTLY_SMALL_CASES = {
 }
 
 
+def _mostly_small_side(f, weights, vmap_of):
+    """One compiled program per function ``f`` (one side of the two tests below): its value,
+    a JVP along ``weights``, the gradient and the Hessian (on the first 8 or last 3 elements) of
+    a weighted sum, and ``vmap_of``'s ``vmap``. The three cases of each test have the same shapes,
+    so the program compiles once for all three (each case compiled its own ten or eight
+    programs, the same ones: about 4 s a pass for the two tests)."""
+
+    def scalar(x):
+        out = f(x)
+        if isinstance(out, tuple):  # sinc_cos_of_sq: a weighting of each output
+            return jnp.sum(out[0] * weights[: x.shape[0]]) + jnp.sum(out[1] * weights[::-1][: x.shape[0]])
+        return jnp.sum(out * jnp.broadcast_to(weights, out.shape))
+
+    def side(x, dx, small, stack):
+        return f(x), jax.jvp(f, (x,), (dx,)), jax.grad(scalar)(x), jax.hessian(scalar)(small), vmap_of(scalar, f)(stack)
+
+    return jax.jit(side)
+
+
+@functools.cache
+def _sinc_small_batch_sides():
+    weights = jnp.asarray(np.linspace(-1.0, 2.0, 64), DTYPE)
+    new, ref = _safe.sinc_cos_of_sq_small_batch, _safe.sinc_cos_of_sq
+    sides = [_mostly_small_side(f, weights, lambda scalar, f: jax.vmap(f)) for f in (new, ref)]
+    nan_grads = [jax.jit(jax.grad(lambda x, f=f: f(x)[0].sum())) for f in (new, ref)]
+    return weights, sides, nan_grads
+
+
 @pytest.mark.parametrize("name", list(_MOSTLY_SMALL_CASES))
 def test_sinc_cos_of_sq_small_batch_is_sinc_cos_of_sq_with_its_derivatives(name):
     """The integrator step's variant (its value and derivatives take the series alone when every
@@ -815,30 +862,28 @@ def test_sinc_cos_of_sq_small_batch_is_sinc_cos_of_sq_with_its_derivatives(name)
     whichever branch the cond takes, also under ``vmap`` (rows of one case each: both branches
     run); to 2 eps (measured: equal)."""
     s = jnp.asarray(_MOSTLY_SMALL_CASES[name], DTYPE)
-    weights = jnp.asarray(np.linspace(-1.0, 2.0, s.shape[0]), DTYPE)
-
-    def scalar(f):
-        return lambda x: jnp.sum(f(x)[0] * weights[: x.shape[0]]) + jnp.sum(f(x)[1] * weights[::-1][: x.shape[0]])
-
-    new, ref = _safe.sinc_cos_of_sq_small_batch, _safe.sinc_cos_of_sq
-    pairs = [
-        (jax.jit(new)(s), jax.jit(ref)(s)),
-        (jax.jit(lambda x: jax.jvp(new, (x,), (weights,)))(s), jax.jit(lambda x: jax.jvp(ref, (x,), (weights,)))(s)),
-        (jax.jit(jax.grad(scalar(new)))(s), jax.jit(jax.grad(scalar(ref)))(s)),
-        (jax.jit(jax.hessian(scalar(new)))(s[:8]), jax.jit(jax.hessian(scalar(ref)))(s[:8])),
-        (jax.jit(jax.vmap(new))(jnp.stack([s, s[::-1] * 0.4])), jax.jit(jax.vmap(ref))(jnp.stack([s, s[::-1] * 0.4]))),
-    ]
-    for got, want in pairs:
-        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+    weights, (new, ref), nan_grads = _sinc_small_batch_sides()
+    args = (s, weights, s[:8], jnp.stack([s, s[::-1] * 0.4]))
+    for got, want in zip(new(*args), ref(*args), strict=True):
+        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=2 * EPS, atol=2 * EPS)
     # a NaN sends the whole array to the direct branch, as the reference's selection does
     nan = jnp.asarray([0.01, jnp.nan], DTYPE)
-    for a, b in zip(jax.jit(new)(nan), jax.jit(ref)(nan)):
+    for a, b in zip(jax.jit(_safe.sinc_cos_of_sq_small_batch)(nan), jax.jit(_safe.sinc_cos_of_sq)(nan)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    np.testing.assert_array_equal(
-        np.asarray(jax.jit(jax.grad(lambda x: new(x)[0].sum()))(nan)),
-        np.asarray(jax.jit(jax.grad(lambda x: ref(x)[0].sum()))(nan)),
-    )
+    np.testing.assert_array_equal(np.asarray(nan_grads[0](nan)), np.asarray(nan_grads[1](nan)))
+
+
+@functools.cache
+def _exp_by_batch_sides():
+    def of(branches):
+        return lambda x: jnp.stack(_rotation.exp_components([x[..., 0], x[..., 1], x[..., 2]], branches), axis=-1)
+
+    weights = jnp.asarray(np.linspace(-1.0, 2.0, 4), DTYPE)
+    fs = of("derivatives by batch"), of("per element")
+    values = [jax.jit(f) for f in fs]
+    sides = [_mostly_small_side(f, weights, lambda scalar, f: jax.vmap(jax.grad(scalar))) for f in fs]
+    return values, sides
 
 
 @pytest.mark.parametrize("name", list(_MOSTLY_SMALL_CASES))
@@ -851,24 +896,11 @@ def test_exp_derivatives_by_batch_is_exp_per_element_with_its_derivatives(name):
     directions = np.random.default_rng(7).normal(size=(s.shape[0], 3))
     r = jnp.asarray(2.0 * np.sqrt(s)[:, None] * directions / np.linalg.norm(directions, axis=-1, keepdims=True), DTYPE)
     dr = jnp.asarray(np.random.default_rng(8).normal(size=r.shape), DTYPE)
-    weights = jnp.asarray(np.linspace(-1.0, 2.0, 4), DTYPE)
-
-    def of(branches):
-        return lambda x: jnp.stack(_rotation.exp_components([x[..., 0], x[..., 1], x[..., 2]], branches), axis=-1)
-
-    def scalar(f):
-        return lambda x: jnp.sum(f(x) * jnp.broadcast_to(weights, f(x).shape))
-
-    new, ref = of("derivatives by batch"), of("per element")
-    np.testing.assert_array_equal(np.asarray(jax.jit(new)(r)), np.asarray(jax.jit(ref)(r)))
-    pairs = [
-        (jax.jit(lambda x: jax.jvp(new, (x,), (dr,)))(r), jax.jit(lambda x: jax.jvp(ref, (x,), (dr,)))(r)),
-        (jax.jit(jax.grad(scalar(new)))(r), jax.jit(jax.grad(scalar(ref)))(r)),
-        (jax.jit(jax.hessian(scalar(new)))(r[-3:]), jax.jit(jax.hessian(scalar(ref)))(r[-3:])),
-        (jax.jit(jax.vmap(jax.grad(scalar(new))))(r), jax.jit(jax.vmap(jax.grad(scalar(ref))))(r)),
-    ]
-    for got, want in pairs:
-        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+    (new_value, ref_value), (new, ref) = _exp_by_batch_sides()
+    np.testing.assert_array_equal(np.asarray(new_value(r)), np.asarray(ref_value(r)))
+    args = (r, dr, r[-3:], r)
+    for got, want in zip(new(*args), ref(*args), strict=True):
+        for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=4 * EPS, atol=4 * EPS)
 
 

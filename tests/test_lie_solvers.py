@@ -227,6 +227,13 @@ def _loss(adjoint):
     return loss
 
 
+@functools.cache
+def _loss_values():
+    """The loss's values, compiled once for both adjoints' tests (the adjoint changes only the
+    gradient; each test compiled the same program)."""
+    return jax.jit(_loss(diffrax.RecursiveCheckpointAdjoint()))
+
+
 @pytest.mark.skipif(not X64, reason="finite differences need float64")
 @pytest.mark.parametrize(
     "adjoint",
@@ -239,7 +246,7 @@ def test_gradients_through_both_adjoints_match_finite_differences(adjoint):
     loss = _loss(adjoint)
     w0, thrust = jnp.asarray([2.0, -1.0, 3.0]), jnp.asarray(THRUST)
     g_w, g_t = jax.jit(jax.grad(loss, argnums=(0, 1)))(w0, thrust)
-    f = jax.jit(_loss(diffrax.RecursiveCheckpointAdjoint()))
+    f = _loss_values()
     eps = 1e-6
     fd_w = np.array([(f(w0 + eps * e, thrust) - f(w0 - eps * e, thrust)) / (2 * eps) for e in np.eye(3)])
     fd_t = (f(w0, thrust + eps) - f(w0, thrust - eps)) / (2 * eps)
