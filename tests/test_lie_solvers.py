@@ -17,7 +17,15 @@ import pytest
 from scipy.integrate import solve_ivp
 
 import jaxquat as jq
-from helpers import DTYPE, X64, XLA_CHOOSES_EMITTERS, assert_close, central_difference_jacobian, jaxpr_equations
+from helpers import (
+    DTYPE,
+    X64,
+    XLA_CHOOSES_EMITTERS,
+    assert_close,
+    central_difference_jacobian,
+    jaxpr_equations,
+    lowered_programs,
+)
 
 MASS, GRAVITY, DRAG = 1.2, 9.81, 0.3
 INERTIA = np.array([0.02, 0.03, 0.05])
@@ -343,6 +351,28 @@ def test_the_fixed_step_driver_over_one_interval_has_no_scan_of_length_one():
     )(w0)
     lengths = _scan_lengths(jaxpr.jaxpr)
     assert 1 not in lengths and 10 in lengths, lengths
+
+
+def test_the_fixed_step_driver_called_eagerly_compiles_once_for_new_arrays_of_the_same_shapes():
+    """An eager ``solve_fixed_steps`` is one compiled program whose inputs are the arrays of its
+    arguments (the term's inertia among them): a second call with another body and state of the
+    same shapes lowers nothing, and its states are those of the driver traced into a caller's
+    ``jit`` (to the bit)."""
+
+    def run(inertia, w0):
+        term = diffrax.ODETerm(jq.RigidBody(jnp.diag(inertia)))
+        ts = jnp.asarray([0.0, 0.1, 0.2], DTYPE)
+        return jq.solve_fixed_steps(jq.LieEuler(), term, ts, (jnp.asarray([0.6, 0.0, 0.8, 0.0], DTYPE), w0), substeps=2)
+
+    first, second = (jnp.asarray(INERTIA * k, DTYPE) for k in (1.0, 1.5))
+    w0, w1 = (jnp.asarray([0.4, -1.1, 0.7], DTYPE) * k for k in (1.0, 2.0))
+    run(first, w0)
+    with lowered_programs() as names:
+        eager = run(second, w1)
+    assert names == [], names
+    nested = jax.jit(run)(second, w1)
+    for a, b in zip(jax.tree.leaves(eager), jax.tree.leaves(nested), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 def test_the_fixed_step_driver_s_checkpoint_choices_give_one_gradient():

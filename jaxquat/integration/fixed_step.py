@@ -17,6 +17,7 @@ from collections.abc import Callable
 from typing import Any
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax import Array
@@ -56,7 +57,11 @@ def solve_fixed_steps(
     ``checkpoint``: rematerialise each step in the backward pass (``jax.checkpoint``), so
     reverse mode stores one state per step; a policy of ``jax.checkpoint_policies`` instead of
     ``True`` keeps the residuals it names as well. ``ts`` may be traced (only its values are used);
-    ``substeps`` must be a Python int.
+    ``substeps`` must be a Python int. Called outside ``jit`` it runs as one compiled program
+    (``equinox.filter_jit``): the arrays of its arguments, the terms' and the solver's included,
+    are the program's inputs and the rest is static, so a later call with arrays of the same
+    shapes reuses it (a new vector-field function, or a Python number in ``args``, compiles
+    again).
 
     Args:
         solver: any diffrax solver (a jaxquat Lie solver or splitting, or diffrax's own), driven
@@ -80,6 +85,20 @@ def solve_fixed_steps(
     ts = jnp.asarray(ts)
     if ts.ndim != 1 or ts.shape[0] < 2:
         raise ValueError(f"argument 'ts' must be shaped (n,) with n >= 2, got shape {tuple(ts.shape)}")
+    return _compiled_steps(solver, terms, ts, y0, args, substeps, interval_args, checkpoint)
+
+
+@eqx.filter_jit
+def _compiled_steps(solver, terms, ts, y0, args, substeps: int, interval_args, checkpoint):
+    """:func:`solve_fixed_steps` after its checks, as one compiled program: the arrays in its
+    arguments (the terms' and the solver's too) are the program's inputs, everything else (the
+    vector field's function, ``substeps``, ``checkpoint``) is static, so a second eager call with
+    new arrays of the same shapes reuses the program. Called eagerly, the driver otherwise traced
+    and compiled its scan at every call (a new closure each time) and ran the solver's ``init``
+    op by op: a rigid body, 100 ``RKMK4`` steps, float64, one core of this 2-core CPU, three eager
+    calls 0.71, 0.50 and 0.50 s, now 0.61, 0.001 and 0.001 s (the same states). Inside a
+    caller's ``jit``, ``vmap`` or ``grad`` it is a nested ``jit``, traced into the caller's
+    program."""
     if interval_args is not None:
         args = jax.tree.map(lambda x: x[0], interval_args)
     state = solver.init(terms, ts[0], ts[0] + (ts[1] - ts[0]) / substeps, y0, args)
