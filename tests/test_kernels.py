@@ -826,21 +826,15 @@ _MOSTLY_SMALL_CASES = {
 }
 
 
-def _mostly_small_side(f, weights, vmap_of):
-    """One compiled program per function ``f`` (one side of the two tests below): its value,
-    a JVP along ``weights``, the gradient and the Hessian (on the first 8 or last 3 elements) of
-    a weighted sum, and ``vmap_of``'s ``vmap``. The three cases of each test have the same shapes,
-    so the program compiles once for all three (each case compiled its own ten or eight
-    programs, the same ones: about 4 s a pass for the two tests)."""
-
-    def scalar(x):
-        out = f(x)
-        if isinstance(out, tuple):  # sinc_cos_of_sq: a weighting of each output
-            return jnp.sum(out[0] * weights[: x.shape[0]]) + jnp.sum(out[1] * weights[::-1][: x.shape[0]])
-        return jnp.sum(out * jnp.broadcast_to(weights, out.shape))
+def _mostly_small_side(f, scalar, vmapped):
+    """One compiled program per function ``f`` (one side of the two tests below): its value, a
+    JVP, the gradient and the Hessian (on a slice) of ``scalar``, a weighted sum of its outputs,
+    and ``vmapped`` under ``vmap``. The three cases of each test have the same shapes, so the
+    program compiles once for all three (each case compiled its own ten or eight programs, the
+    same ones: about 4 s a pass for the two tests)."""
 
     def side(x, dx, small, stack):
-        return f(x), jax.jvp(f, (x,), (dx,)), jax.grad(scalar)(x), jax.hessian(scalar)(small), vmap_of(scalar, f)(stack)
+        return f(x), jax.jvp(f, (x,), (dx,)), jax.grad(scalar)(x), jax.hessian(scalar)(small), jax.vmap(vmapped)(stack)
 
     return jax.jit(side)
 
@@ -848,8 +842,12 @@ def _mostly_small_side(f, weights, vmap_of):
 @functools.cache
 def _sinc_small_batch_sides():
     weights = jnp.asarray(np.linspace(-1.0, 2.0, 64), DTYPE)
+
+    def scalar(f):
+        return lambda x: jnp.sum(f(x)[0] * weights[: x.shape[0]]) + jnp.sum(f(x)[1] * weights[::-1][: x.shape[0]])
+
     new, ref = _safe.sinc_cos_of_sq_small_batch, _safe.sinc_cos_of_sq
-    sides = [_mostly_small_side(f, weights, lambda scalar, f: jax.vmap(f)) for f in (new, ref)]
+    sides = [_mostly_small_side(f, scalar(f), f) for f in (new, ref)]
     nan_grads = [jax.jit(jax.grad(lambda x, f=f: f(x)[0].sum())) for f in (new, ref)]
     return weights, sides, nan_grads
 
@@ -880,9 +878,13 @@ def _exp_by_batch_sides():
         return lambda x: jnp.stack(_rotation.exp_components([x[..., 0], x[..., 1], x[..., 2]], branches), axis=-1)
 
     weights = jnp.asarray(np.linspace(-1.0, 2.0, 4), DTYPE)
+
+    def scalar(f):
+        return lambda x: jnp.sum(f(x) * jnp.broadcast_to(weights, f(x).shape))
+
     fs = of("derivatives by batch"), of("per element")
     values = [jax.jit(f) for f in fs]
-    sides = [_mostly_small_side(f, weights, lambda scalar, f: jax.vmap(jax.grad(scalar))) for f in fs]
+    sides = [_mostly_small_side(f, scalar(f), jax.grad(scalar(f))) for f in fs]
     return values, sides
 
 
