@@ -5,11 +5,12 @@ The suite is bound by compilation (docs/benchmarks.md, sessions 58, 92 and 93: X
 tracing and lowering are about 90 % of a pass's test time), so this is the profile that finds
 its time. Two parts:
 
-- A pytest plugin (this module, loaded by ``-p``): it wraps JAX's own timers of tracing,
-  lowering and XLA's compile (``jax._src.dispatch.log_elapsed_time``) and its call to XLA
-  (``jax._src.compiler.compile_or_get_cached``), and writes one JSON line per event, with the
-  test that caused it, to ``$JAXQUAT_SUITE_COMPILES`` (default ``/tmp/jaxquat-suite-compiles``),
-  a file per worker and dtype. Each program XLA compiles is named by a hash of its MLIR text
+- A pytest plugin (this module, loaded by ``-p``): it listens to JAX's own timings of tracing,
+  lowering and XLA's compile (``jax.monitoring``'s duration events, as ``tests/helpers.py``'s
+  ``lowered_programs`` does), wraps JAX's call to XLA (``jax._src.compiler.compile_or_get_cached``)
+  to name each program, and writes one JSON line per event, with the test that caused it, to
+  ``$JAXQUAT_SUITE_COMPILES`` (default ``/tmp/jaxquat-suite-compiles``), a file per worker and
+  dtype. Each program XLA compiles is named by a hash of its MLIR text
   without locations and of its compile options, so a program compiled twice in one worker (a
   closure built again for each parameter of a test, say) shows as a repeat. Hashing costs about
   2 ms a program (10 s over the float64 pass): compare timings only between runs with the
@@ -24,14 +25,13 @@ Run from the repository root, a pass or part of one, then the report::
     JAX_ENABLE_X64=1 PYTHONPATH=benchmarks .venv/bin/python -m pytest -n 2 --dist loadfile -p suite_compiles
     .venv/bin/python benchmarks/suite_compiles.py
 
-Both wrapped functions are JAX internals (jax 0.10.2 here); where they are missing the plugin
-raises at load, naming them, rather than reporting nothing.
+The wrapped function is a JAX internal (jax 0.10.2 here); where it is missing the plugin raises
+at load, naming it, rather than reporting nothing.
 """
 
 from __future__ import annotations
 
 import collections
-import contextlib
 import glob
 import hashlib
 import json
@@ -52,24 +52,18 @@ _records: list[list] = []
 
 
 def _install() -> None:
-    """Wraps JAX's timers and its XLA call (a plugin's import, in each pytest process)."""
-    from jax._src import compiler, dispatch
+    """Listens to JAX's timings and wraps its XLA call (a plugin's import, in each pytest process)."""
+    import jax
+    from jax._src import compiler
 
-    if not hasattr(dispatch, "log_elapsed_time") or not hasattr(compiler, "compile_or_get_cached"):
-        raise RuntimeError(
-            "suite_compiles: this jax has no jax._src.dispatch.log_elapsed_time or "
-            "jax._src.compiler.compile_or_get_cached to wrap"
-        )
-    timer, xla = dispatch.log_elapsed_time, compiler.compile_or_get_cached
+    if not hasattr(compiler, "compile_or_get_cached"):
+        raise RuntimeError("suite_compiles: this jax has no jax._src.compiler.compile_or_get_cached to wrap")
+    xla = compiler.compile_or_get_cached
 
-    @contextlib.contextmanager
-    def timed(fmt, fun_name, event=None):
-        start = time.perf_counter()
-        with timer(fmt, fun_name, event=event):
-            yield
-        phase = _PHASES.get((event or "").rsplit("/", 1)[-1])
+    def timed(event: str, duration_secs: float, **kwargs: str | int) -> None:
+        phase = _PHASES.get(event.rsplit("/", 1)[-1])
         if phase:
-            _records.append([_test[0], phase, str(fun_name), time.perf_counter() - start, None])
+            _records.append([_test[0], phase, str(kwargs.get("fun_name")), duration_secs, None])
 
     def compiled(backend, computation, devices, compile_options, *args, **kwargs):
         text = computation.operation.get_asm(enable_debug_info=False, large_elements_limit=None)
@@ -80,7 +74,7 @@ def _install() -> None:
         _records.append([_test[0], "program", name, time.perf_counter() - start, key])
         return out
 
-    dispatch.log_elapsed_time = timed
+    jax.monitoring.register_event_duration_secs_listener(timed)
     compiler.compile_or_get_cached = compiled
 
 
