@@ -396,7 +396,10 @@ def first_closed_form(repeats=3):
     """Time to the first result of ``simulate``'s default torque-free path (no ``solver``: the closed
     form, :func:`jaxquat.euler_poinsot` at every saved time) as a user meets it: a fresh
     interpreter, an eager call on 1000 bodies and 101 saved times in float32 (least of
-    ``repeats`` processes), with how much of it XLA's compilation took."""
+    ``repeats`` processes), with how much of it XLA's compilation took; then, in the same
+    interpreter, the first optax Adam step through it (a jitted step whose loss is the final
+    attitude's squared distance to a target, as :func:`compile_times`' step through the scan path),
+    and XLA's share of that."""
     code = (
         "import time, jax, jax.numpy as jnp, numpy as np, jaxquat as jq; spent = []; "
         "jax.monitoring.register_event_duration_secs_listener("
@@ -405,7 +408,13 @@ def first_closed_form(repeats=3):
         "w0 = jnp.asarray(rng.normal(size=(1000, 3)), jnp.float32); "
         f"inertia = jnp.diag(jnp.asarray({list(MOMENTS)}, jnp.float32)); ts = np.linspace(0.0, 10.0, 101); "
         "jax.block_until_ready((q0, w0, inertia)); spent.clear(); t0 = time.perf_counter(); "
-        "jax.block_until_ready(jq.simulate(q0, w0, inertia, ts).q); print(time.perf_counter() - t0, sum(spent))"
+        "jax.block_until_ready(jq.simulate(q0, w0, inertia, ts).q); first = (time.perf_counter() - t0, sum(spent)); "
+        "import optax; target = jq.random(jax.random.PRNGKey(0), (1000,), jnp.float32); opt = optax.adam(1e-2); "
+        "loss = lambda w: jnp.mean(jnp.sum((jq.simulate(q0, w, inertia, ts).q[:, -1] - target) ** 2, -1)); "
+        "step = jax.jit(lambda w, s: (lambda g: (lambda u, s2: (optax.apply_updates(w, u), s2))(*opt.update(g, s, w)))"
+        "(jax.grad(loss)(w))); state = opt.init(w0); jax.block_until_ready((target, state)); spent.clear(); "
+        "t0 = time.perf_counter(); jax.block_until_ready(step(w0, state)); "
+        "print(*first, time.perf_counter() - t0, sum(spent))"
     )
     runs = _fresh_runs(code, repeats)
     return runs[np.argmin(runs[:, 0])]
@@ -495,7 +504,9 @@ def markdown(rows, grad_rows, compiled, imported, closed_form, thread_rows=()):
         f"Compile time (time to first result, batch 1000): `simulate` {first_sim:.2f} s; one optax Adam step "
         f"through it (forward + reverse) {first_step:.2f} s. `simulate`'s default torque-free path (no "
         f"`solver`: the closed form), eager in a fresh interpreter, 1000 bodies x 101 saved times: "
-        f"{closed_form[0]:.2f} s, {closed_form[1]:.2f} s of it XLA's compilation.",
+        f"{closed_form[0]:.2f} s, {closed_form[1]:.2f} s of it XLA's compilation; one optax Adam step through "
+        f"it (final-attitude loss, jitted, the same interpreter after that call) {closed_form[2]:.2f} s, "
+        f"{closed_form[3]:.2f} s of it XLA's.",
         "",
         f"Import time (fresh interpreters, least of 5): `import jax` {imported[0]:.2f} s; `import jaxquat` adds "
         f"{imported[1] * 1e3:.0f} ms; the first rotation function (`jq.multiply`) {imported[2] * 1e3:.0f} ms more, the "
