@@ -404,6 +404,34 @@ def test_a_first_solve_compiles_its_preparation_as_a_few_programs(free_energy):
     assert len(_FIRST_CALL_LOWERED) <= 7, _FIRST_CALL_LOWERED
 
 
+class _Guessed(Exception):
+    """Raised by the spy on the solver: the preparation ran, nothing was solved."""
+
+
+def test_configurations_that_differ_only_in_their_bounds_share_one_guess_program(monkeypatch):
+    """The starts' guess reads neither the bounds nor the cost's terms
+    (``transcription.guess_config``): a 7-interval minimum-time slew (a shape no other test
+    solves) lowers the guess program once, and again with a rate bound lowers none, the same
+    guess to the bit. The solver itself is not run (a spy stops each call after the guess)."""
+    from jaxquat.control import optimal_control
+
+    seen = []
+
+    def spy(data, cfg, tol, max_iter, keys, guess, warm, batch=None):
+        seen.append((cfg, jax.tree.map(np.asarray, guess)))
+        raise _Guessed
+
+    monkeypatch.setattr(optimal_control, "solve", spy)
+    for bound in ({}, {"rate_bound": 0.5}):
+        with lowered_programs() as names, pytest.raises(_Guessed):
+            jq.minimum_time_reorientation(np.eye(3), np.ones(3), Q0, QZ, intervals=7, **bound)
+        assert names.count("jit(guesses)") == (0 if bound else 1), names
+    (plain, guess), (bounded, guess_bounded) = seen
+    assert plain != bounded and plain.rate_bounded != bounded.rate_bounded  # two configurations
+    for a, b in zip(jax.tree.leaves(guess), jax.tree.leaves(guess_bounded)):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_minimum_energy_batch_approaches_the_closed_form_from_above(free_energy):
     """Continuous optimum 12 theta^2 / T^3 (eigenaxis, cubic angle): the held-torque optimum lies
     above it by O(1/N^2); measured 0.36 % at N = 12."""

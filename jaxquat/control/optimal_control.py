@@ -25,7 +25,7 @@ from ..manifold.lie import minus
 from ..mechanics.inertia import validated
 from . import controlled_model, transcription
 from .controlled_model import ControlledModel
-from .transcription import Config, ConstrainedReorientation, Data, Warm, guesses, solve
+from .transcription import Config, ConstrainedReorientation, Data, Warm, guess_config, guesses, solve
 
 __all__ = [
     "ReactionWheels",
@@ -430,7 +430,7 @@ def _run(
     boundary = (inertia, q0, qf, w0, wf, duration, u_ref, w_ref)
     data = _arrays.compiled(_data, boundary, rate_bound, cones, weights, fractions, extra, cfg=cfg)
     keys = _arrays.compiled(_keys, seed=seed, starts=starts)
-    guess = _arrays.compiled(guesses, data, init, cfg=cfg)
+    guess = _arrays.compiled(guesses, data, init, cfg=guess_config(cfg))
     out = solve(data, cfg, tol, np.int32(max_iter), keys, guess, np.asarray(init is not None), batch=batch)
     if throw and not _checks.is_traced(out.violation):
         bad = ~np.asarray(out.converged)
