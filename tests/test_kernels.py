@@ -843,8 +843,12 @@ def _mostly_small_side(f, scalar, vmapped):
 def _sinc_small_batch_sides():
     weights = jnp.asarray(np.linspace(-1.0, 2.0, 64), DTYPE)
 
-    def scalar(f):
-        return lambda x: jnp.sum(f(x)[0] * weights[: x.shape[0]]) + jnp.sum(f(x)[1] * weights[::-1][: x.shape[0]])
+    def scalar(f):  # a weighting of each of the two outputs
+        def weighted(x):
+            sinc, cos = f(x)
+            return jnp.sum(sinc * weights[: x.shape[0]]) + jnp.sum(cos * weights[::-1][: x.shape[0]])
+
+        return weighted
 
     new, ref = _safe.sinc_cos_of_sq_small_batch, _safe.sinc_cos_of_sq
     sides = [_mostly_small_side(f, scalar(f), f) for f in (new, ref)]
@@ -880,7 +884,11 @@ def _exp_by_batch_sides():
     weights = jnp.asarray(np.linspace(-1.0, 2.0, 4), DTYPE)
 
     def scalar(f):
-        return lambda x: jnp.sum(f(x) * jnp.broadcast_to(weights, f(x).shape))
+        def weighted(x):
+            out = f(x)
+            return jnp.sum(out * jnp.broadcast_to(weights, out.shape))
+
+        return weighted
 
     fs = of("derivatives by batch"), of("per element")
     values = [jax.jit(f) for f in fs]
