@@ -38,6 +38,7 @@ import math
 import os
 import subprocess
 import sys
+import textwrap
 import time
 
 import jax
@@ -400,21 +401,43 @@ def first_closed_form(repeats=3):
     interpreter, the first optax Adam step through it (a jitted step whose loss is the final
     attitude's squared distance to a target, as :func:`compile_times`' step through the scan path),
     and XLA's share of that."""
-    code = (
-        "import time, jax, jax.numpy as jnp, numpy as np, jaxquat as jq; spent = []; "
-        "jax.monitoring.register_event_duration_secs_listener("
-        "lambda name, secs, **kw: spent.append(secs) if name.endswith('backend_compile_duration') else None); "
-        "rng = np.random.default_rng(1); q0 = jq.normalize(jnp.asarray(rng.normal(size=(1000, 4)), jnp.float32)); "
-        "w0 = jnp.asarray(rng.normal(size=(1000, 3)), jnp.float32); "
-        f"inertia = jnp.diag(jnp.asarray({list(MOMENTS)}, jnp.float32)); ts = np.linspace(0.0, 10.0, 101); "
-        "jax.block_until_ready((q0, w0, inertia)); spent.clear(); t0 = time.perf_counter(); "
-        "jax.block_until_ready(jq.simulate(q0, w0, inertia, ts).q); first = (time.perf_counter() - t0, sum(spent)); "
-        "import optax; target = jq.random(jax.random.PRNGKey(0), (1000,), jnp.float32); opt = optax.adam(1e-2); "
-        "loss = lambda w: jnp.mean(jnp.sum((jq.simulate(q0, w, inertia, ts).q[:, -1] - target) ** 2, -1)); "
-        "step = jax.jit(lambda w, s: (lambda g: (lambda u, s2: (optax.apply_updates(w, u), s2))(*opt.update(g, s, w)))"
-        "(jax.grad(loss)(w))); state = opt.init(w0); jax.block_until_ready((target, state)); spent.clear(); "
-        "t0 = time.perf_counter(); jax.block_until_ready(step(w0, state)); "
-        "print(*first, time.perf_counter() - t0, sum(spent))"
+    code = textwrap.dedent(
+        f"""
+        import time, jax, jax.numpy as jnp, numpy as np, jaxquat as jq
+        spent = []
+        jax.monitoring.register_event_duration_secs_listener(
+            lambda name, secs, **kw: spent.append(secs) if name.endswith("backend_compile_duration") else None
+        )
+        rng = np.random.default_rng(1)
+        q0 = jq.normalize(jnp.asarray(rng.normal(size=(1000, 4)), jnp.float32))
+        w0 = jnp.asarray(rng.normal(size=(1000, 3)), jnp.float32)
+        inertia = jnp.diag(jnp.asarray({list(MOMENTS)}, jnp.float32))
+        ts = np.linspace(0.0, 10.0, 101)
+        jax.block_until_ready((q0, w0, inertia))
+        spent.clear()
+        t0 = time.perf_counter()
+        jax.block_until_ready(jq.simulate(q0, w0, inertia, ts).q)
+        first = (time.perf_counter() - t0, sum(spent))
+
+        import optax
+        target = jq.random(jax.random.PRNGKey(0), (1000,), jnp.float32)
+        opt = optax.adam(1e-2)
+        state = opt.init(w0)
+        jax.block_until_ready((target, state))
+
+        def loss(w):
+            return jnp.mean(jnp.sum((jq.simulate(q0, w, inertia, ts).q[:, -1] - target) ** 2, -1))
+
+        @jax.jit
+        def opt_step(w, state):
+            updates, state = opt.update(jax.grad(loss)(w), state, w)
+            return optax.apply_updates(w, updates), state
+
+        spent.clear()
+        t0 = time.perf_counter()
+        jax.block_until_ready(opt_step(w0, state))
+        print(*first, time.perf_counter() - t0, sum(spent))
+        """
     )
     runs = _fresh_runs(code, repeats)
     return runs[np.argmin(runs[:, 0])]
